@@ -209,3 +209,36 @@ def voxelize(positions_mm: np.ndarray, geometry: Geometry, mask: np.ndarray | No
     out = np.zeros(geometry.size[::-1], dtype=bool)
     out[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = True
     return out
+
+
+def block_model(
+    shape: tuple[int, int, int],
+    spacing_mm: tuple[float, float, float] = (2.0, 2.0, 2.0),
+    organ: str = "pancreas",
+    origin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    materials: dict[str, Material] | None = None,
+) -> ParticleModel:
+    """A rectangular block of one organ's material, one particle per voxel: the test scene.
+
+    ``shape`` is the number of voxels along x, y, z; the block's grid is the volume itself.
+    """
+    from .images import Geometry
+
+    geom = Geometry(tuple(int(s) for s in shape), tuple(float(s) for s in spacing_mm), tuple(float(o) for o in origin_mm))
+    kk, jj, ii = np.meshgrid(*[np.arange(s) for s in shape[::-1]], indexing="ij")
+    ijk = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1).astype(np.int32)
+    mats = dict(PAPER_MATERIALS)
+    mats.update(materials or {})
+    return ParticleModel(geom.index_to_world(ijk), np.zeros(len(ijk), dtype=np.int32), (organ,), ijk,
+                         np.full(len(ijk), geom.voxel_volume_mm3), {organ: mats[organ]}, geom)
+
+
+def merge_models(a: ParticleModel, b: ParticleModel) -> ParticleModel:
+    """Two models with different organs in one scene (test scenes of touching bodies)."""
+    organs = tuple(o for o in ORGANS if o in a.organs or o in b.organs)
+    if set(a.organs) & set(b.organs):
+        raise InputError("merge_models needs models of different organs")
+    idx = np.concatenate([[organs.index(a.organs[i]) for i in a.organ_index], [organs.index(b.organs[i]) for i in b.organ_index]]).astype(np.int32)
+    mats = {**a.materials, **b.materials}
+    return ParticleModel(np.vstack([a.positions_mm, b.positions_mm]), idx, organs, np.vstack([a.voxel_ijk, b.voxel_ijk]),
+                         np.concatenate([a.volume_mm3, b.volume_mm3]), {o: mats[o] for o in organs}, a.geometry)

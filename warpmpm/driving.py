@@ -1,0 +1,398 @@
+"""Slice-driven estimation: driving slices, targets, the PID driving force and convergence.
+
+A frame's estimate drives the particles lying on one or more 2D slices toward their targets with
+a PID force while the whole multi-organ MPM model evolves; the converged positions are the 3D
+estimate. A frame starts from the previous frame's converged state (a cine stream is followed
+frame after frame); the PID integral restarts every frame.
+
+PID force (per driven particle i, acceleration form, physical units)::
+
+    e_i = x_i^target - x_i                       (m)
+    a_i = Kp e_i - Kd v_i + Ki sum(e_i dt)       (m/s^2;  Kp in 1/s^2, Kd in 1/s, Ki in 1/s^3)
+    f_i = m_i clamp(a_i, max_accel)              (N)
+
+Writing the force as mass times a controlled acceleration makes one set of gains work for the
+soft pancreas and the stiff duodenum alike (their masses differ by ~1500x under mass scaling).
+``-Kd v`` is the derivative of the error for a target at rest, without the kick a finite
+difference gives when the target jumps. The default gains derive from the solver's time step
+(``omega = omega_dt / dt``, ``Kp = omega^2``, ``Kd = 2 zeta omega``, ``Ki = ki_ratio omega^3``) so
+they stay stable for any scene, and are reported in physical units in every result.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .images import InputError
+from .model import ParticleModel, orientation_image_axis
+from .solver import MPMModel, MPMSolver, SolverConfig, State
+
+
+# --------------------------------------------------------------------------------------------
+# Slices and targets
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class DrivingSlice:
+    """A driving slice: orientation (axial, sagittal, coronal) and voxel index of the planning volume."""
+
+    orientation: str
+    index: int
+
+    def __str__(self) -> str:
+        return f"{self.orientation}:{self.index}"
+
+
+def parse_slices(text: str) -> list[DrivingSlice]:
+    """Parse ``"axial:12,sagittal:40"`` into :class:`DrivingSlice` objects."""
+    out = []
+    for part in [p.strip() for p in text.split(",") if p.strip()]:
+        if ":" not in part:
+            raise InputError(f"slice {part!r} must read ORIENTATION:INDEX, e.g. axial:12")
+        o, i = part.split(":", 1)
+        o = o.strip().lower()
+        if o not in ("axial", "sagittal", "coronal"):
+            raise InputError(f"unknown slice orientation {o!r} in {part!r}; use axial, sagittal or coronal")
+        try:
+            idx = int(i)
+        except ValueError:
+            raise InputError(f"slice index {i!r} in {part!r} is not an integer") from None
+        out.append(DrivingSlice(o, idx))
+    if not out:
+        raise InputError("no driving slice given")
+    return out
+
+
+def driven_indices(model: ParticleModel, slices: list[DrivingSlice]) -> np.ndarray:
+    """Indices of the particles lying on any of ``slices`` (sorted, unique).
+
+    Raises :class:`InputError` for an index outside the volume or a slice holding no particle.
+    """
+    if not slices:
+        raise InputError("no driving slice given")
+    mask = np.zeros(model.n, dtype=bool)
+    for s in slices:
+        on = model.slice_mask(s.orientation, s.index)
+        if not on.any():
+            raise InputError(f"{s.orientation} slice {s.index} holds no particle of the organs {model.letters}")
+        mask |= on
+    return np.nonzero(mask)[0]
+
+
+def in_plane_axes(model_or_geometry, orientation: str) -> tuple[np.ndarray, np.ndarray]:
+    """World unit vectors (e_u, e_v) of a slice's two in-plane image axes, in image-axis order."""
+    geometry = getattr(model_or_geometry, "geometry", model_or_geometry)
+    normal = orientation_image_axis(geometry, orientation)
+    u, v = [a for a in range(3) if a != normal]
+    return geometry.axis_world_direction(u), geometry.axis_world_direction(v)
+
+
+def check_affine(A: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    A = np.asarray(A, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64).reshape(-1)
+    if A.shape != (2, 2) or t.shape != (2,):
+        raise InputError(f"an in-plane affine needs A of shape (2, 2) and t of shape (2,), got {A.shape} and {t.shape}")
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(t))):
+        raise InputError("the in-plane affine holds a non-finite value")
+    det = np.linalg.det(A)
+    if abs(det) < 1e-6 or np.linalg.cond(A) > 1e6:
+        raise InputError(f"the in-plane affine is singular or degenerate (det {det:.3g})")
+    return A, t
+
+
+def apply_in_plane_affine(positions_mm: np.ndarray, e_u: np.ndarray, e_v: np.ndarray, A: np.ndarray, t_mm: np.ndarray,
+                          centre_mm: np.ndarray) -> np.ndarray:
+    """``x' = A (x - c) + c + t`` in the plane spanned by (e_u, e_v); the out-of-plane coordinate is unchanged."""
+    A, t_mm = check_affine(A, t_mm)
+    d = np.asarray(positions_mm, dtype=np.float64) - np.asarray(centre_mm, dtype=np.float64)
+    uv = np.stack([d @ e_u, d @ e_v], axis=1)
+    new_uv = uv @ A.T + t_mm
+    delta = new_uv - uv
+    return positions_mm + delta[:, :1] * e_u[None, :] + delta[:, 1:] * e_v[None, :]
+
+
+def affine_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[DrivingSlice], affines: list,
+                   centre_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Driven indices and targets from one in-plane affine ``(A, t_mm)`` per driving slice.
+
+    ``positions_mm`` is the state at t-1 (all particles); ``centre_mm`` defaults to the volume centre.
+    A particle on two slices takes the target of the first.
+    """
+    if len(affines) != len(slices):
+        raise InputError(f"{len(slices)} driving slices but {len(affines)} affines")
+    centre = model.geometry.center_mm() if centre_mm is None else np.asarray(centre_mm, dtype=np.float64)
+    idx_all, tgt_all = [], []
+    taken = np.zeros(model.n, dtype=bool)
+    for s, (A, t) in zip(slices, affines):
+        idx = driven_indices(model, [s])
+        idx = idx[~taken[idx]]
+        taken[idx] = True
+        e_u, e_v = in_plane_axes(model, s.orientation)
+        idx_all.append(idx)
+        tgt_all.append(apply_in_plane_affine(positions_mm[idx], e_u, e_v, A, t, centre))
+    idx = np.concatenate(idx_all)
+    order = np.argsort(idx)
+    return idx[order], np.concatenate(tgt_all)[order]
+
+
+# --------------------------------------------------------------------------------------------
+# Convergence
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class ConvergenceConfig:
+    """Stopping rules (METHOD.md): relative residual under ``th_v`` for ``th_s`` consecutive steps,
+    or unchanged at ``th_d`` decimals for ``th_s`` consecutive steps; at most ``max_steps``."""
+
+    th_v: float = 0.0015
+    th_s: int = 100
+    th_d: int = 4
+    max_steps: int = 6000
+    min_steps: int = 0
+
+
+class ConvergenceMonitor:
+    """Feeds on one relative residual per step and says when a stopping rule is met.
+
+    ``reason`` is ``"threshold"`` (TH_V), ``"stagnation"`` (TH_D) or ``"max_steps"``.
+    """
+
+    def __init__(self, config: ConvergenceConfig | None = None):
+        self.config = config or ConvergenceConfig()
+        self.below = 0
+        self.same = 0
+        self.previous: float | None = None
+        self.steps = 0
+        self.reason: str | None = None
+
+    def update(self, residual: float) -> bool:
+        c = self.config
+        self.steps += 1
+        if not math.isfinite(residual):
+            raise InputError(f"non-finite residual at step {self.steps}")
+        self.below = self.below + 1 if residual < c.th_v else 0
+        rounded = round(residual, c.th_d)
+        self.same = self.same + 1 if (self.previous is not None and rounded == self.previous) else 0
+        self.previous = rounded
+        if self.steps < c.min_steps:
+            return False
+        if self.below >= c.th_s:
+            self.reason = "threshold"
+        elif self.same >= c.th_s:
+            self.reason = "stagnation"
+        elif self.steps >= c.max_steps:
+            self.reason = "max_steps"
+        return self.reason is not None
+
+    @property
+    def converged(self) -> bool:
+        return self.reason in ("threshold", "stagnation")
+
+
+# --------------------------------------------------------------------------------------------
+# PID drive
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class DriveConfig:
+    """PID gains (acceleration form, see module docstring) and clamp.
+
+    Attributes:
+        kp_per_s2, kd_per_s, ki_per_s3: explicit gains; None derives them from the time step.
+        omega_dt: drive frequency times the time step for the derived gains (stability needs << 1).
+        zeta: damping ratio of the derived derivative gain.
+        ki_ratio: derived ``Ki = ki_ratio * omega^3``.
+        max_accel_m_s2: clamp of the commanded acceleration magnitude; None: ``0.05 * dx / dt^2``
+            (at most 5% of a cell per step squared).
+    """
+
+    kp_per_s2: float | None = None
+    kd_per_s: float | None = None
+    ki_per_s3: float | None = None
+    omega_dt: float = 0.3
+    zeta: float = 1.0
+    ki_ratio: float = 0.02
+    max_accel_m_s2: float | None = None
+
+    def resolve(self, dt_s: float, dx_mm: float) -> dict[str, float]:
+        for name in ("kp_per_s2", "kd_per_s", "ki_per_s3", "max_accel_m_s2"):
+            value = getattr(self, name)
+            if value is not None and (not math.isfinite(value) or value < 0):
+                raise InputError(f"driving gain {name} must be a finite number >= 0, got {value}")
+        if not (0 < self.omega_dt < 1) or self.zeta < 0 or self.ki_ratio < 0:
+            raise InputError("drive omega_dt must be in (0, 1); zeta and ki_ratio must be >= 0")
+        w = self.omega_dt / dt_s
+        kp = w * w if self.kp_per_s2 is None else self.kp_per_s2
+        kd = 2 * self.zeta * w if self.kd_per_s is None else self.kd_per_s
+        ki = self.ki_ratio * w**3 if self.ki_per_s3 is None else self.ki_per_s3
+        amax = 0.05 * dx_mm * 1e-3 / dt_s**2 if self.max_accel_m_s2 is None else self.max_accel_m_s2
+        if kp * dt_s * dt_s > 0.25 or kd * dt_s > 1.0:
+            raise InputError(
+                f"driving gains too large for the time step {dt_s:.3e} s: need Kp dt^2 <= 0.25 and Kd dt <= 1 "
+                f"(Kp <= {0.25 / dt_s**2:.3e} 1/s^2, Kd <= {1 / dt_s:.3e} 1/s)"
+            )
+        return {"kp_per_s2": kp, "kd_per_s": kd, "ki_per_s3": ki, "max_accel_m_s2": amax}
+
+
+@wp.kernel
+def pid_force(
+    driven: wp.array(dtype=int),
+    target: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    integral: wp.array(dtype=wp.vec3),
+    centre: wp.vec3,
+    kp: float,
+    kd: float,
+    ki: float,
+    max_accel: float,
+    dt: float,
+    f_ext: wp.array(dtype=wp.vec3),
+    sums: wp.array(dtype=float),
+):
+    """PID force on driven particle ``driven[j]`` toward ``target[j]``; accumulates the residual sums
+    ``sums = [sum |e|^2, sum |target - centre|^2]``."""
+    j = wp.tid()
+    p = driven[j]
+    e = target[j] - x[p]
+    acc_i = integral[j] + e * dt
+    integral[j] = acc_i
+    a = kp * e - kd * v[p] + ki * acc_i
+    n = wp.length(a)
+    if n > max_accel:
+        a = a * (max_accel / n)
+    f_ext[p] = mass[p] * a
+    r = target[j] - centre
+    wp.atomic_add(sums, 0, wp.dot(e, e))
+    wp.atomic_add(sums, 1, wp.dot(r, r))
+
+
+@dataclass
+class DriveResult:
+    """One frame's estimate.
+
+    Attributes: positions_mm (N, 3) final world positions; steps; wall_s; residual_history
+    (relative residual per step); rms_history_mm; converged; reason (which rule stopped it);
+    final_rel_residual; final_rms_mm; gains (resolved, physical units).
+    """
+
+    positions_mm: np.ndarray
+    steps: int
+    wall_s: float
+    residual_history: np.ndarray
+    rms_history_mm: np.ndarray
+    converged: bool
+    reason: str
+    gains: dict = field(default_factory=dict)
+
+    @property
+    def final_rel_residual(self) -> float:
+        return float(self.residual_history[-1]) if len(self.residual_history) else float("nan")
+
+    @property
+    def final_rms_mm(self) -> float:
+        return float(self.rms_history_mm[-1]) if len(self.rms_history_mm) else float("nan")
+
+
+class SliceDrivenEstimator:
+    """Owns the solver and the current state; estimates frame after frame.
+
+    Example::
+
+        est = SliceDrivenEstimator(model, [DrivingSlice("axial", 20)])
+        idx, targets = affine_targets(model, est.positions_mm(), est.slices, [(A, t)])
+        result = est.estimate(targets)          # frame 1
+        result2 = est.estimate(next_targets)    # frame 2 starts from frame 1's state
+    """
+
+    def __init__(self, model: ParticleModel, slices: list[DrivingSlice] | None = None, *,
+                 driven: np.ndarray | None = None, solver_config: SolverConfig | None = None,
+                 drive_config: DriveConfig | None = None, convergence: ConvergenceConfig | None = None,
+                 extra_points_mm: np.ndarray | None = None, callback=None):
+        if slices is None and driven is None:
+            raise InputError("give driving slices or explicit driven particle indices")
+        self.particles = model
+        self.slices = list(slices) if slices else []
+        self.driven = driven_indices(model, self.slices) if driven is None else np.asarray(driven, dtype=np.int64)
+        if self.driven.size == 0:
+            raise InputError("the driven particle set is empty")
+        if self.driven.min() < 0 or self.driven.max() >= model.n:
+            raise InputError("driven particle indices outside the model")
+        self.mpm = MPMModel(model, solver_config, extra_points_mm)
+        self.solver = MPMSolver(self.mpm)
+        self.drive_config = drive_config or DriveConfig()
+        self.gains = self.drive_config.resolve(self.mpm.dt_s, self.mpm.dx_mm)
+        self.convergence = convergence or ConvergenceConfig()
+        d = self.mpm.device
+        self.state = self.mpm.state()
+        self._other = self.mpm.state()
+        nd = len(self.driven)
+        self._driven_wp = wp.array(self.driven.astype(np.int32), dtype=int, device=d)
+        self._target = wp.zeros(nd, dtype=wp.vec3, device=d)
+        self._integral = wp.zeros(nd, dtype=wp.vec3, device=d)
+        self._force = wp.zeros(model.n, dtype=wp.vec3, device=d)
+        self._sums = wp.zeros(2, dtype=float, device=d)
+        self._centre = wp.vec3(*self.mpm.to_local_m(model.center_mm()[None, :])[0])
+        self.callback = callback
+        self.frames = 0
+
+    def positions_mm(self) -> np.ndarray:
+        return self.state.positions_mm()
+
+    def driven_positions_mm(self) -> np.ndarray:
+        return self.positions_mm()[self.driven]
+
+    def estimate(self, targets_mm: np.ndarray, convergence: ConvergenceConfig | None = None) -> DriveResult:
+        """Drive the driven particles to ``targets_mm`` (n_driven, 3) until convergence; one frame."""
+        targets_mm = np.asarray(targets_mm, dtype=np.float64)
+        if targets_mm.shape != (len(self.driven), 3):
+            raise InputError(f"targets must have shape ({len(self.driven)}, 3) for the driven particles, got {targets_mm.shape}")
+        if not np.all(np.isfinite(targets_mm)):
+            raise InputError("targets hold a non-finite value")
+        lo = self.mpm.origin_mm + (self.mpm.config.wall_cells + 1) * self.mpm.dx_mm
+        hi = self.mpm.origin_mm + (np.asarray(self.mpm.grid_shape) - self.mpm.config.wall_cells - 2) * self.mpm.dx_mm
+        if np.any(targets_mm < lo) or np.any(targets_mm > hi):
+            raise InputError("targets lie outside the simulation grid; build the estimator with extra_points_mm covering them "
+                             f"or a larger SolverConfig.margin_mm (now {self.mpm.config.margin_mm} mm)")
+        conv = ConvergenceMonitor(convergence or self.convergence)
+        self._target.assign(self.mpm.to_local_m(targets_mm))
+        self._integral.zero_()
+        self._force.zero_()
+        g = self.gains
+        dt = self.mpm.dt_s
+        d = self.mpm.device
+        rel_hist, rms_hist = [], []
+        nd = len(self.driven)
+        t0 = time.perf_counter()
+        while True:
+            self._sums.zero_()
+            wp.launch(pid_force, nd, [self._driven_wp, self._target, self.state.x, self.state.v, self.mpm.mass, self._integral,
+                                      self._centre, g["kp_per_s2"], g["kd_per_s"], g["ki_per_s3"], g["max_accel_m_s2"], dt,
+                                      self._force, self._sums], device=d)
+            self.solver.step(self.state, self._other, self._force)
+            self.state, self._other = self._other, self.state
+            e2, r2 = (float(v) for v in self._sums.numpy())
+            rel = math.sqrt(e2 / max(r2, 1e-30))
+            rel_hist.append(rel)
+            rms_hist.append(math.sqrt(e2 / nd) * 1e3)
+            if self.callback is not None:
+                self.callback(self, len(rel_hist), rel, rms_hist[-1])
+            if conv.update(rel):
+                break
+        self.solver.check()
+        wall = time.perf_counter() - t0
+        self._force.zero_()
+        self.frames += 1
+        result = DriveResult(self.positions_mm(), conv.steps, wall, np.asarray(rel_hist), np.asarray(rms_hist),
+                             conv.converged, conv.reason, dict(g))
+        if not result.converged:
+            warnings.warn(f"estimate did not converge in {conv.steps} steps (relative residual {rel:.2e}, "
+                          f"RMS {rms_hist[-1]:.3f} mm)", RuntimeWarning, stacklevel=2)
+        return result

@@ -1,0 +1,232 @@
+"""Pseudo ground-truth protocols.
+
+``paper``: the paper's 8 deformation types, ``A = R G S`` applied to every axial slice about the
+image centre; every particle is driven to its transformed position and the converged simulation is
+the ground truth (GT).
+
+``contact``: aperiodic, contact-driven motion that differs along the body axis: one neighbour
+(stomach or duodenum) is displaced toward the pancreas and swells; optionally the left kidney
+shifts superior-inferiorly by an amount that varies along the body axis. Only those neighbours
+are driven; the pancreas moves through contact. The GT is the converged simulation.
+
+No inverse crime: by default the GT is simulated with seeded, perturbed material parameters
+(+-30 % per organ) and its own solver settings, recorded in :attr:`GroundTruth.params`; the
+estimator uses the nominal table.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import SimpleITK as sitk
+
+from .driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator, apply_in_plane_affine, in_plane_axes
+from .images import Case, InputError
+from .model import Material, ParticleModel, voxelize
+from .solver import SolverConfig
+
+#: The paper's deformation table: type -> (r, g, s).
+PAPER_DEFORMATIONS = {
+    1: (-2.0, -2.0, 0.8), 2: (-2.0, -2.0, 1.2), 3: (-2.0, 2.0, 0.8), 4: (-2.0, 2.0, 1.2),
+    5: (2.0, -2.0, 0.8), 6: (2.0, -2.0, 1.2), 7: (2.0, 2.0, 0.8), 8: (2.0, 2.0, 1.2),
+}
+
+
+def paper_affine(deformation: int, literal: bool = False) -> np.ndarray:
+    """2x2 matrix ``A = R G S`` of a paper deformation type (1..8).
+
+    r and g are read as degrees (default), or literally as the paper writes them (angle ``r / 2 pi``
+    radians) with ``literal=True``.
+    """
+    if deformation not in PAPER_DEFORMATIONS:
+        raise InputError(f"deformation must be 1..8, got {deformation!r}")
+    r, g, s = PAPER_DEFORMATIONS[deformation]
+    ra, ga = (r / (2 * math.pi), g / (2 * math.pi)) if literal else (math.radians(r), math.radians(g))
+    R = np.array([[math.cos(ra), -math.sin(ra)], [math.sin(ra), math.cos(ra)]])
+    G = np.array([[1.0, math.tan(ga)], [math.tan(ga), 1.0]])
+    S = np.diag([s, s])
+    return R @ G @ S
+
+
+def perturb_materials(materials: dict[str, Material], seed: int, fraction: float = 0.3) -> dict[str, Material]:
+    """Each organ's lambda and mu scaled by one seeded factor in [1 - fraction, 1 + fraction]."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for organ in sorted(materials):
+        f = rng.uniform(1 - fraction, 1 + fraction)
+        m = materials[organ]
+        out[organ] = Material(m.lam_pa * f, m.mu_pa * f, m.density_kg_m3)
+    return out
+
+
+@dataclass
+class GroundTruth:
+    """GT positions of every particle of ``model`` (same order), with what produced them."""
+
+    model: ParticleModel
+    positions_mm: np.ndarray
+    protocol: str
+    params: dict = field(default_factory=dict)
+    steps: int = 0
+    wall_s: float = 0.0
+    converged: bool = True
+
+    def organ_positions(self, organ: str) -> np.ndarray:
+        return self.positions_mm[self.model.organ_slice(organ)]
+
+    def label_map(self, label_values: dict[str, int]) -> np.ndarray:
+        """Deformed label map at the GT state on the planning grid, (z, y, x), with ``label_values``."""
+        g = self.model.geometry
+        out = np.zeros(g.size[::-1], dtype=np.int32)
+        # Stomach first, pancreas last, as the phantom's labels are drawn.
+        for organ in ("stomach", "left_kidney", "duodenum", "pancreas"):
+            if organ in self.model.organs:
+                out[voxelize(self.positions_mm, g, self.model.organ_slice(organ))] = label_values[organ]
+        return out
+
+
+def _gt_solver_config(base: SolverConfig | None, device: str | None) -> SolverConfig:
+    b = base or SolverConfig(device=device)
+    # The GT uses its own discretisation: a finer grid than the estimator's default.
+    return SolverConfig(particles_per_cell=max(1.0, b.particles_per_cell * 0.5), margin_mm=b.margin_mm, wall_cells=b.wall_cells,
+                        cfl=b.cfl, device=b.device or device)
+
+
+def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray, *, perturb: bool, seed: int,
+                solver_config: SolverConfig | None, device: str | None, max_steps: int = 4000) -> tuple[np.ndarray, dict]:
+    params: dict = {"perturbed": bool(perturb), "material_seed": int(seed)}
+    mats = dict(model.materials)
+    if perturb:
+        mats = perturb_materials(mats, seed)
+        params["materials"] = {o: {"lam_pa": m.lam_pa, "mu_pa": m.mu_pa} for o, m in mats.items()}
+    gt_model = ParticleModel(model.positions_mm, model.organ_index, model.organs, model.voxel_ijk, model.volume_mm3, mats,
+                             model.geometry, model.sampling_step, dict(model.meta))
+    cfg = _gt_solver_config(solver_config, device)
+    est = SliceDrivenEstimator(gt_model, driven=driven, solver_config=cfg, drive_config=DriveConfig(),
+                               convergence=ConvergenceConfig(max_steps=max_steps), extra_points_mm=targets_mm)
+    res = est.estimate(targets_mm)
+    params["solver"] = est.mpm.summary()
+    params["gt_steps"] = res.steps
+    params["gt_converged"] = res.converged
+    params["gt_rms_residual_mm"] = res.final_rms_mm
+    return res.positions_mm, params | {"_result": res}
+
+
+def paper_ground_truth(model: ParticleModel, deformation: int, *, literal: bool = False, perturb: bool = True, seed: int = 0,
+                       centre_mm: np.ndarray | None = None, solver_config: SolverConfig | None = None,
+                       device: str | None = None, simulate: bool = True) -> GroundTruth:
+    """The paper protocol on ``model``: every particle driven to its axial-slice affine target.
+
+    ``simulate=False`` returns the targets themselves (the purely geometric GT, for debugging).
+    """
+    A = paper_affine(deformation, literal)
+    centre = model.geometry.center_mm() if centre_mm is None else np.asarray(centre_mm, dtype=np.float64)
+    e_u, e_v = in_plane_axes(model, "axial")
+    targets = apply_in_plane_affine(model.positions_mm, e_u, e_v, A, np.zeros(2), centre)
+    r, g, s = PAPER_DEFORMATIONS[deformation]
+    params = {"deformation": deformation, "r": r, "g": g, "s": s, "literal": literal, "A": A.tolist(), "centre_mm": centre.tolist()}
+    if not simulate:
+        return GroundTruth(model, targets, "paper", params)
+    pos, sim = simulate_gt(model, np.arange(model.n), targets, perturb=perturb, seed=seed + 1000 * deformation,
+                           solver_config=solver_config, device=device)
+    res = sim.pop("_result")
+    return GroundTruth(model, pos, "paper", params | sim, res.steps, res.wall_s, res.converged)
+
+
+def contact_targets(model: ParticleModel, seed: int, neighbour: str | None = None, push_mm: float | None = None,
+                    swell: float | None = None, si_shift_mm: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Driven indices and targets of the contact protocol (see module docstring)."""
+    rng = np.random.default_rng(seed)
+    choices = [o for o in ("stomach", "duodenum") if o in model.organs]
+    if not choices:
+        raise InputError("the contact protocol needs the stomach or the duodenum in the model (organs 'ps', 'pd', ...)")
+    if neighbour is None:
+        neighbour = choices[int(rng.integers(len(choices)))]
+    if neighbour not in model.organs:
+        raise InputError(f"contact neighbour {neighbour!r} is not in the model ({model.letters})")
+    push = float(rng.uniform(5.0, 15.0)) if push_mm is None else float(push_mm)
+    swell = float(rng.uniform(1.05, 1.15)) if swell is None else float(swell)
+    nmask = model.organ_slice(neighbour)
+    pmask = model.organ_slice("pancreas")
+    nc = model.positions_mm[nmask].mean(0)
+    # Push toward the pancreas particles nearest the neighbour, not toward the far-away centroid.
+    pan = model.positions_mm[pmask]
+    near = pan[np.argsort(np.linalg.norm(pan - nc, axis=1))[: max(1, len(pan) // 5)]].mean(0)
+    direction = (near - nc) / max(np.linalg.norm(near - nc), 1e-9)
+    idx = [np.nonzero(nmask)[0]]
+    tgt = [nc + swell * (model.positions_mm[nmask] - nc) + push * direction]
+    params = {"neighbour": neighbour, "push_mm": push, "swell": swell, "direction": direction.tolist()}
+    if "left_kidney" in model.organs:
+        si = float(rng.uniform(4.0, 10.0)) if si_shift_mm is None else float(si_shift_mm)
+        kmask = model.organ_slice("left_kidney")
+        z = model.positions_mm[kmask, 2]
+        ramp = (z - z.min()) / max(z.max() - z.min(), 1e-9)
+        shift = si * (0.5 + ramp)  # breathing-like: more at the superior pole
+        k_t = model.positions_mm[kmask].copy()
+        k_t[:, 2] -= shift
+        idx.append(np.nonzero(kmask)[0])
+        tgt.append(k_t)
+        params["kidney_si_shift_mm"] = si
+    idx = np.concatenate(idx)
+    order = np.argsort(idx)
+    return idx[order], np.concatenate(tgt)[order], params
+
+
+def contact_ground_truth(model: ParticleModel, *, seed: int = 0, perturb: bool = True, neighbour: str | None = None,
+                         push_mm: float | None = None, solver_config: SolverConfig | None = None,
+                         device: str | None = None) -> GroundTruth:
+    """The contact protocol on ``model``; parameters and seed recorded in ``params``."""
+    idx, targets, params = contact_targets(model, seed, neighbour, push_mm)
+    params["seed"] = seed
+    pos, sim = simulate_gt(model, idx, targets, perturb=perturb, seed=seed + 77, solver_config=solver_config, device=device)
+    res = sim.pop("_result")
+    return GroundTruth(model, pos, "contact", params | sim, res.steps, res.wall_s, res.converged)
+
+
+def fit_in_plane_affine(before_mm: np.ndarray, after_mm: np.ndarray, e_u: np.ndarray, e_v: np.ndarray,
+                        centre_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares in-plane affine (A, t) about ``centre_mm`` mapping ``before`` to ``after``."""
+    d0 = before_mm - centre_mm
+    d1 = after_mm - centre_mm
+    uv0 = np.stack([d0 @ e_u, d0 @ e_v], axis=1)
+    uv1 = np.stack([d1 @ e_u, d1 @ e_v], axis=1)
+    X = np.hstack([uv0, np.ones((len(uv0), 1))])
+    sol, *_ = np.linalg.lstsq(X, uv1, rcond=None)
+    return sol[:2].T, sol[2]
+
+
+def warp_image(case: Case, model: ParticleModel, gt_positions_mm: np.ndarray, sigma_mm: float = 4.0) -> np.ndarray:
+    """The planning image warped by the GT particle motion (z, y, x).
+
+    A backward displacement field is scattered from the particles at their GT positions, filled
+    by normalised Gaussian smoothing and blended smoothly to identity outside the organs.
+    """
+    if case.image is None:
+        raise InputError(f"case {case.name} has no intensity image to warp")
+    g = case.geometry
+    u = gt_positions_mm - model.positions_mm
+    ijk = np.rint(g.world_to_index(gt_positions_mm)).astype(np.int64)
+    inside = np.all((ijk >= 0) & (ijk < np.asarray(g.size)), axis=1)
+    ijk, u = ijk[inside], u[inside]
+    shape = g.size[::-1]
+    num = np.zeros(shape + (3,), dtype=np.float64)
+    den = np.zeros(shape, dtype=np.float64)
+    np.add.at(num, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), -u)
+    np.add.at(den, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), 1.0)
+
+    def smooth(a):
+        im = g.apply_to(sitk.GetImageFromArray(a.astype(np.float32)))
+        return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(im, sigma_mm))
+
+    den_s = smooth(den)
+    field_ = np.stack([smooth(num[..., c]) for c in range(3)], axis=-1)
+    weight = np.clip(den_s / max(den_s.max(), 1e-12) * 4.0, 0.0, 1.0)
+    field_ = field_ / np.maximum(den_s, 1e-6)[..., None] * weight[..., None]
+    disp = sitk.GetImageFromArray(field_.astype(np.float64), isVector=True)
+    g.apply_to(disp)
+    tx = sitk.DisplacementFieldTransform(disp)
+    moving = case.intensity_image()
+    out = sitk.Resample(moving, moving, tx, sitk.sitkLinear, 0.0)
+    return sitk.GetArrayFromImage(out).astype(np.float32)

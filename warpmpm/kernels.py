@@ -1,0 +1,204 @@
+"""Warp kernels of one explicit MLS-MPM (APIC) step with quadratic B-splines.
+
+Units inside the kernels are SI: positions in metres *relative to the grid origin*, velocities
+in m/s, masses in kg, volumes in m^3, stresses in Pa, forces in N, time in s. The solver converts
+from and to the public millimetre world coordinates.
+
+The step, for particles p and grid nodes i:
+
+1. ``compute_stress``: Kirchhoff stress of the fixed-corotated model (Stomakhin et al. 2012),
+   ``tau = 2 mu (F - R) F^T + lambda (J - 1) J I``, R from the SVD of F.
+2. ``p2g``: mass, APIC momentum ``w (m v + (m C - dt V0 4/dx^2 tau) (x_i - x_p))`` and the
+   external (driving) force ``w dt f_p``, scattered with atomics.
+3. ``grid_update``: velocity = momentum / mass, damping, wall conditions.
+4. ``g2p``: particle velocity, affine C, position, ``F <- (I + dt C) F``, and the guards that keep
+   every particle inside the grid and flag non-finite values.
+"""
+
+import warp as wp
+
+#: flag codes written to the solver's status array
+STATUS_OK = 0
+STATUS_NONFINITE = 1
+STATUS_LEFT_GRID = 2
+
+
+@wp.func
+def bspline_weights(fx: wp.vec3, axis: int):
+    """Quadratic B-spline weights of the 3 nodes along one axis for fractional offset ``fx``."""
+    f = fx[axis]
+    return wp.vec3(0.5 * (1.5 - f) * (1.5 - f), 0.75 - (f - 1.0) * (f - 1.0), 0.5 * (f - 0.5) * (f - 0.5))
+
+
+@wp.func
+def base_node(x: wp.vec3, inv_dx: float):
+    """Index of the first of the 3x3x3 nodes a particle at grid-local ``x`` (m) touches."""
+    return wp.vec3i(int(x[0] * inv_dx - 0.5), int(x[1] * inv_dx - 0.5), int(x[2] * inv_dx - 0.5))
+
+
+@wp.func
+def fixed_corotated_kirchhoff(F: wp.mat33, mu: float, lam: float):
+    """Kirchhoff stress tau = P F^T of the fixed-corotated model (Pa)."""
+    J = wp.determinant(F)
+    I = wp.identity(n=3, dtype=float)
+    D = F - I
+    small = wp.max(wp.max(wp.max(wp.abs(D[0, 0]), wp.abs(D[0, 1])), wp.max(wp.abs(D[0, 2]), wp.abs(D[1, 0]))),
+                   wp.max(wp.max(wp.abs(D[1, 1]), wp.abs(D[1, 2])), wp.max(wp.max(wp.abs(D[2, 0]), wp.abs(D[2, 1])), wp.abs(D[2, 2]))))
+    if small < 1.0e-5:
+        # Linearised model near the identity: exact zero at rest, error O(|F - I|^2 mu).
+        return mu * (D + wp.transpose(D)) + lam * (D[0, 0] + D[1, 1] + D[2, 2]) * I
+    U = wp.mat33()
+    sig = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, sig, V)
+    R = U * wp.transpose(V)
+    return 2.0 * mu * (F - R) * wp.transpose(F) + lam * (J - 1.0) * J * I
+
+
+@wp.kernel
+def compute_stress(
+    F: wp.array(dtype=wp.mat33),
+    mu: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    tau: wp.array(dtype=wp.mat33),
+):
+    p = wp.tid()
+    tau[p] = fixed_corotated_kirchhoff(F[p], mu[p], lam[p])
+
+
+@wp.kernel
+def clear_grid(grid_m: wp.array(dtype=float, ndim=3), grid_mv: wp.array(dtype=wp.vec3, ndim=3)):
+    i, j, k = wp.tid()
+    grid_m[i, j, k] = 0.0
+    grid_mv[i, j, k] = wp.vec3(0.0)
+
+
+@wp.kernel
+def p2g(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    tau: wp.array(dtype=wp.mat33),
+    f_ext: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    vol0: wp.array(dtype=float),
+    dx: float,
+    dt: float,
+    grid_m: wp.array(dtype=float, ndim=3),
+    grid_mv: wp.array(dtype=wp.vec3, ndim=3),
+):
+    p = wp.tid()
+    inv_dx = 1.0 / dx
+    xp = x[p]
+    base = base_node(xp, inv_dx)
+    fx = wp.vec3(xp[0] * inv_dx - float(base[0]), xp[1] * inv_dx - float(base[1]), xp[2] * inv_dx - float(base[2]))
+    wx = bspline_weights(fx, 0)
+    wy = bspline_weights(fx, 1)
+    wz = bspline_weights(fx, 2)
+    m = mass[p]
+    affine = m * C[p] - (dt * vol0[p] * 4.0 * inv_dx * inv_dx) * tau[p]
+    mom = m * v[p]
+    impulse = dt * f_ext[p]
+    for a in range(3):
+        for b in range(3):
+            for c in range(3):
+                w = wx[a] * wy[b] * wz[c]
+                dpos = (wp.vec3(float(a), float(b), float(c)) - fx) * dx
+                ii = base[0] + a
+                jj = base[1] + b
+                kk = base[2] + c
+                wp.atomic_add(grid_mv, ii, jj, kk, w * (mom + affine * dpos + impulse))
+                wp.atomic_add(grid_m, ii, jj, kk, w * m)
+
+
+@wp.kernel
+def grid_update(
+    grid_m: wp.array(dtype=float, ndim=3),
+    grid_mv: wp.array(dtype=wp.vec3, ndim=3),
+    damping: float,
+    wall: int,
+    grid_v: wp.array(dtype=wp.vec3, ndim=3),
+):
+    """Momentum -> velocity, velocity damping ``v <- v * damping``, slip walls ``wall`` cells thick."""
+    i, j, k = wp.tid()
+    m = grid_m[i, j, k]
+    vel = wp.vec3(0.0)
+    if m > 0.0:
+        vel = grid_mv[i, j, k] / m * damping
+        n = wp.vec3i(grid_m.shape[0], grid_m.shape[1], grid_m.shape[2])
+        if i < wall and vel[0] < 0.0:
+            vel = wp.vec3(0.0, vel[1], vel[2])
+        if i >= n[0] - wall and vel[0] > 0.0:
+            vel = wp.vec3(0.0, vel[1], vel[2])
+        if j < wall and vel[1] < 0.0:
+            vel = wp.vec3(vel[0], 0.0, vel[2])
+        if j >= n[1] - wall and vel[1] > 0.0:
+            vel = wp.vec3(vel[0], 0.0, vel[2])
+        if k < wall and vel[2] < 0.0:
+            vel = wp.vec3(vel[0], vel[1], 0.0)
+        if k >= n[2] - wall and vel[2] > 0.0:
+            vel = wp.vec3(vel[0], vel[1], 0.0)
+    grid_v[i, j, k] = vel
+
+
+@wp.func
+def is_finite_vec(a: wp.vec3):
+    return wp.isfinite(a[0]) and wp.isfinite(a[1]) and wp.isfinite(a[2])
+
+
+@wp.kernel
+def g2p(
+    grid_v: wp.array(dtype=wp.vec3, ndim=3),
+    x_in: wp.array(dtype=wp.vec3),
+    F_in: wp.array(dtype=wp.mat33),
+    dx: float,
+    dt: float,
+    x_min: float,
+    x_max: wp.vec3,
+    step: int,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+    F_out: wp.array(dtype=wp.mat33),
+    status: wp.array(dtype=int),
+):
+    """Gather velocity and C, advect, update F. ``status`` = [code, first bad particle, first bad step]."""
+    p = wp.tid()
+    inv_dx = 1.0 / dx
+    xp = x_in[p]
+    base = base_node(xp, inv_dx)
+    fx = wp.vec3(xp[0] * inv_dx - float(base[0]), xp[1] * inv_dx - float(base[1]), xp[2] * inv_dx - float(base[2]))
+    wx = bspline_weights(fx, 0)
+    wy = bspline_weights(fx, 1)
+    wz = bspline_weights(fx, 2)
+    new_v = wp.vec3(0.0)
+    new_C = wp.mat33(0.0)
+    for a in range(3):
+        for b in range(3):
+            for c in range(3):
+                w = wx[a] * wy[b] * wz[c]
+                dpos = (wp.vec3(float(a), float(b), float(c)) - fx) * dx
+                gv = grid_v[base[0] + a, base[1] + b, base[2] + c]
+                new_v += w * gv
+                new_C += (4.0 * inv_dx * inv_dx * w) * wp.outer(gv, dpos)
+    new_x = xp + dt * new_v
+    F_new = (wp.identity(n=3, dtype=float) + dt * new_C) * F_in[p]
+    code = int(0)
+    if not (is_finite_vec(new_x) and is_finite_vec(new_v) and wp.isfinite(wp.determinant(F_new))):
+        code = STATUS_NONFINITE
+        new_x = xp
+        new_v = wp.vec3(0.0)
+        new_C = wp.mat33(0.0)
+        F_new = F_in[p]
+    # Keep the particle where its 3x3x3 stencil stays inside the grid; flag it when clamped.
+    clamped = wp.vec3(wp.clamp(new_x[0], x_min, x_max[0]), wp.clamp(new_x[1], x_min, x_max[1]), wp.clamp(new_x[2], x_min, x_max[2]))
+    if code == 0 and (clamped[0] != new_x[0] or clamped[1] != new_x[1] or clamped[2] != new_x[2]):
+        code = STATUS_LEFT_GRID
+    if code != 0:
+        wp.atomic_max(status, 0, code)
+        wp.atomic_min(status, 1, p)
+        wp.atomic_min(status, 2, step)
+    x_out[p] = clamped
+    v_out[p] = new_v
+    C_out[p] = new_C
+    F_out[p] = F_new

@@ -1,0 +1,279 @@
+"""Registration with SimpleITK: the 2D slice-to-slice affine of the intra-treatment step, capture of
+the cine slice a device would image, and the 3D volume-to-volume affine baseline.
+
+Slice coordinates: a slice normal to image axis ``a`` is a 2D image whose physical coordinates are
+the in-plane offsets ``(u, v) = ((x - c) . e_u, (x - c) . e_v)`` in mm from the driving centre ``c``
+(``e_u, e_v``: world directions of the two in-plane image axes, in axis order). A registration's
+``(A, t)`` is then exactly the driving affine ``x' = A (x - c) + c + t`` of
+:func:`warpmpm.driving.apply_in_plane_affine`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import SimpleITK as sitk
+
+from .driving import in_plane_axes
+from .images import Geometry, InputError
+from .model import orientation_image_axis
+
+
+# --------------------------------------------------------------------------------------------
+# 2D slices
+# --------------------------------------------------------------------------------------------
+
+def extract_slice(volume: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray) -> sitk.Image:
+    """The 2D image of ``volume`` (z, y, x) on slice ``index`` of an orientation, in centred in-plane mm."""
+    axis = orientation_image_axis(geometry, orientation)
+    if not (0 <= int(index) < geometry.size[axis]):
+        raise InputError(f"{orientation} slice {index} is outside the volume (valid 0..{geometry.size[axis] - 1})")
+    u, v = [a for a in range(3) if a != axis]
+    np_axis = 2 - axis  # numpy order is (z, y, x)
+    plane = np.take(volume, int(index), axis=np_axis).astype(np.float32)
+    # remaining numpy axes are (v, u) in that order: the larger image axis first
+    img = sitk.GetImageFromArray(plane)
+    idx0 = np.zeros(3)
+    idx0[axis] = index
+    x0 = geometry.index_to_world(idx0[None, :])[0] - np.asarray(centre_mm, dtype=np.float64)
+    e_u, e_v = in_plane_axes(geometry, orientation)
+    img.SetOrigin((float(x0 @ e_u), float(x0 @ e_v)))
+    img.SetSpacing((geometry.spacing_mm[u], geometry.spacing_mm[v]))
+    return img
+
+
+def capture_slice(warped_volume: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray, *,
+                  noise_sd: float = 0.0, in_plane_factor: float = 1.0, seed: int = 0) -> sitk.Image:
+    """The cine slice the device would see on a plane of the GT-warped volume.
+
+    ``noise_sd`` adds Gaussian noise (intensity units); ``in_plane_factor > 1`` images at a coarser
+    in-plane resolution (downsampled by that factor, then resampled back to the planning grid).
+    """
+    img = extract_slice(warped_volume, geometry, orientation, index, centre_mm)
+    if in_plane_factor > 1.0:
+        size = [max(2, int(round(s / in_plane_factor))) for s in img.GetSize()]
+        spacing = [sp * s0 / s1 for sp, s0, s1 in zip(img.GetSpacing(), img.GetSize(), size)]
+        coarse = sitk.Resample(img, size, sitk.Transform(), sitk.sitkLinear, img.GetOrigin(), spacing, img.GetDirection(), 0.0)
+        img = sitk.Resample(coarse, img, sitk.Transform(), sitk.sitkLinear, 0.0)
+    if noise_sd > 0:
+        arr = sitk.GetArrayFromImage(img)
+        arr = arr + np.random.default_rng(seed).normal(0.0, noise_sd, arr.shape).astype(np.float32)
+        out = sitk.GetImageFromArray(arr.astype(np.float32))
+        out.CopyInformation(img)
+        img = out
+    return img
+
+
+@dataclass
+class SliceRegistration:
+    """Result of a 2D registration: ``x_t = A (x_{t-1} - c) + c + t`` with c the driving centre.
+
+    Attributes: A (2, 2), t_mm (2,), centre_mm (3,) world centre of rotation, metric value,
+    iterations, stop condition, wall_s, and ``ok`` (False when the transform is degenerate).
+    """
+
+    A: np.ndarray
+    t_mm: np.ndarray
+    centre_mm: np.ndarray
+    metric: float
+    iterations: int
+    stop: str
+    wall_s: float
+    ok: bool = True
+
+
+def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, *, mask: sitk.Image | None = None,
+                    metric: str = "correlation", iterations: int = 100, levels: tuple[int, ...] = (2, 1),
+                    sampling: float = 0.5, seed: int = 1) -> SliceRegistration:
+    """2D affine registration of the stored slice (t-1) onto the captured slice (t).
+
+    ``metric``: ``correlation`` (normalised cross-correlation: robust to the intensity scaling
+    of MR), ``meansquares`` or ``mattes`` (mutual information). ``mask`` restricts the metric to
+    the organs of the planning contour on the stored slice. Raises :class:`InputError` for a
+    blank or constant slice; returns ``ok=False`` when the result is non-finite or degenerate.
+    """
+    for name, im in (("stored", stored), ("captured", captured)):
+        arr = sitk.GetArrayViewFromImage(im)
+        if not np.all(np.isfinite(arr)) or float(arr.max() - arr.min()) <= 1e-6:
+            raise InputError(f"the {name} slice is blank or constant; nothing to register")
+    fixed = sitk.Cast(captured, sitk.sitkFloat32)
+    moving = sitk.Cast(stored, sitk.sitkFloat32)
+    reg = sitk.ImageRegistrationMethod()
+    if metric == "correlation":
+        reg.SetMetricAsCorrelation()
+    elif metric == "meansquares":
+        reg.SetMetricAsMeanSquares()
+    elif metric == "mattes":
+        reg.SetMetricAsMattesMutualInformation(32)
+    else:
+        raise InputError(f"unknown registration metric {metric!r}; use correlation, meansquares or mattes")
+    reg.SetMetricSamplingStrategy(reg.RANDOM if sampling < 1 else reg.NONE)
+    if sampling < 1:
+        reg.SetMetricSamplingPercentage(sampling, seed)
+    if mask is not None:
+        reg.SetMetricMovingMask(sitk.Cast(mask, sitk.sitkUInt8))
+    tx = sitk.AffineTransform(2)
+    tx.SetCenter((0.0, 0.0))
+    reg.SetInitialTransform(tx, inPlace=True)
+    reg.SetInterpolator(sitk.sitkLinear)
+    reg.SetOptimizerAsRegularStepGradientDescent(learningRate=2.0, minStep=1e-3, numberOfIterations=iterations,
+                                                 relaxationFactor=0.6, gradientMagnitudeTolerance=1e-8)
+    reg.SetOptimizerScalesFromPhysicalShift()
+    reg.SetShrinkFactorsPerLevel(list(levels))
+    reg.SetSmoothingSigmasPerLevel([max(0.0, f - 1.0) for f in levels])
+    reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOff()
+    t0 = time.perf_counter()
+    reg.Execute(fixed, moving)
+    wall = time.perf_counter() - t0
+    # tx maps captured (t) points to stored (t-1) points: invert for the forward motion.
+    M = np.asarray(tx.GetMatrix()).reshape(2, 2)
+    tr = np.asarray(tx.GetTranslation())
+    ok = bool(np.all(np.isfinite(M)) and np.all(np.isfinite(tr)) and abs(np.linalg.det(M)) > 1e-3)
+    if ok:
+        A = np.linalg.inv(M)
+        t = -A @ tr
+        s = np.linalg.svd(A, compute_uv=False)
+        ok = bool(0.5 < s.min() and s.max() < 2.0)
+    else:
+        A, t = np.eye(2), np.zeros(2)
+    return SliceRegistration(A, t, np.asarray(centre_mm, dtype=np.float64), float(reg.GetMetricValue()),
+                             int(reg.GetOptimizerIteration()), reg.GetOptimizerStopConditionDescription(), wall, ok)
+
+
+def slice_mask(labels: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray, label_values,
+               dilate_mm: float = 6.0) -> sitk.Image:
+    """Mask of the given labels on a slice, dilated by ``dilate_mm`` so organ edges are in."""
+    m = np.isin(labels, list(label_values)).astype(np.float32)
+    img = extract_slice(m, geometry, orientation, index, centre_mm)
+    img = sitk.Cast(img > 0.5, sitk.sitkUInt8)
+    radius = [max(1, int(round(dilate_mm / s))) for s in img.GetSpacing()]
+    return sitk.BinaryDilate(img, radius)
+
+
+def resample_slice_affine(stored: sitk.Image, A: np.ndarray, t_mm: np.ndarray) -> sitk.Image:
+    """Apply the forward in-plane motion ``(A, t)`` to a slice image (for tests and the viewer)."""
+    tx = sitk.AffineTransform(2)
+    Ainv = np.linalg.inv(A)
+    tx.SetMatrix(Ainv.ravel().tolist())
+    tx.SetTranslation((-Ainv @ np.asarray(t_mm)).tolist())
+    return sitk.Resample(stored, stored, tx, sitk.sitkLinear, 0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# 3D volume-to-volume baseline
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class VolumeRegistration:
+    """3D affine mapping planning points to GT points: ``y = M x + b`` (mm)."""
+
+    matrix: np.ndarray
+    offset_mm: np.ndarray
+    wall_s: float
+    metric: float
+
+    def apply(self, points_mm: np.ndarray) -> np.ndarray:
+        return np.asarray(points_mm) @ self.matrix.T + self.offset_mm
+
+
+def register_volumes_affine(planning: np.ndarray, target: np.ndarray, geometry: Geometry, *, mask: np.ndarray | None = None,
+                            iterations: int = 200, levels: tuple[int, ...] = (4, 2, 1)) -> VolumeRegistration:
+    """3D affine registration of the planning volume onto the target (GT) volume.
+
+    Both arrays are (z, y, x) on ``geometry``; ``mask`` (target grid, boolean) restricts the metric
+    (mean squares: the two volumes share a modality). Returns the planning->target point mapping.
+    """
+    fixed = geometry.apply_to(sitk.GetImageFromArray(target.astype(np.float32)))
+    moving = geometry.apply_to(sitk.GetImageFromArray(planning.astype(np.float32)))
+    reg = sitk.ImageRegistrationMethod()
+    reg.SetMetricAsMeanSquares()
+    reg.SetMetricSamplingStrategy(reg.NONE)
+    if mask is not None:
+        reg.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
+    tx = sitk.AffineTransform(3)
+    if mask is not None and mask.any():
+        kk, jj, ii = np.nonzero(mask)
+        centre = geometry.index_to_world(np.array([[ii.mean(), jj.mean(), kk.mean()]]))[0]
+    else:
+        centre = geometry.center_mm()
+    tx.SetCenter(centre.tolist())
+    reg.SetInitialTransform(tx, inPlace=True)
+    reg.SetInterpolator(sitk.sitkLinear)
+    reg.SetOptimizerAsRegularStepGradientDescent(learningRate=2.0, minStep=1e-4, numberOfIterations=iterations,
+                                                 relaxationFactor=0.6)
+    reg.SetOptimizerScalesFromPhysicalShift()
+    reg.SetShrinkFactorsPerLevel(list(levels))
+    reg.SetSmoothingSigmasPerLevel([max(0.0, f / 2.0) for f in levels])
+    reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOff()
+    t0 = time.perf_counter()
+    reg.Execute(fixed, moving)
+    wall = time.perf_counter() - t0
+    # tx maps target points to planning points: x = M (y - c) + c + tr. Invert: y = M^-1 (x - c - tr) + c.
+    M = np.asarray(tx.GetMatrix()).reshape(3, 3)
+    tr = np.asarray(tx.GetTranslation())
+    c = np.asarray(tx.GetCenter())
+    Minv = np.linalg.inv(M)
+    return VolumeRegistration(Minv, c - Minv @ (c + tr), wall, float(reg.GetMetricValue()))
+
+
+def organ_intensity_volume(labels: np.ndarray, label_values: dict[str, int], geometry: Geometry, sigma_mm: float = 2.0) -> np.ndarray:
+    """A smooth synthetic intensity volume from a label map (for cases without an image)."""
+    vol = np.zeros(labels.shape, dtype=np.float32)
+    for n, (organ, value) in enumerate(sorted(label_values.items())):
+        vol[labels == value] = 100.0 * (n + 1)
+    img = geometry.apply_to(sitk.GetImageFromArray(vol))
+    return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(img, sigma_mm))
+
+
+# --------------------------------------------------------------------------------------------
+# The whole chain: capture the cine slice at the GT state, register, targets
+# --------------------------------------------------------------------------------------------
+
+def registration_targets(prep, gt, model, slices, *, noise_sd: float = 0.0, in_plane_factor: float = 1.0):
+    """Driven indices and targets from registering each driving slice of the planning image with the
+    slice captured at the GT state; also the registration's own error.
+
+    Returns ``(idx, targets, info)`` where ``info`` holds per-slice (A, t, time) and ``error_mm``:
+    the mean in-plane distance between registered and true positions of the slices' pancreas particles.
+    """
+    from .driving import affine_targets
+    from .groundtruth import warp_image
+
+    case = prep.case
+    centre = prep.input_centre_mm
+    values = {o: case.label_map[o] for o in gt.model.organs}
+    if case.image is not None:
+        planning = case.image
+        warped = warp_image(case, gt.model, gt.positions_mm)
+    else:
+        planning = organ_intensity_volume(case.labels, values, case.geometry)
+        warped = organ_intensity_volume(gt.label_map(values), values, case.geometry)
+    affines, per_slice = [], []
+    for s in slices:
+        stored = extract_slice(planning, case.geometry, s.orientation, s.index, centre)
+        captured = capture_slice(warped, case.geometry, s.orientation, s.index, centre, noise_sd=noise_sd, in_plane_factor=in_plane_factor)
+        mask = slice_mask(case.labels, case.geometry, s.orientation, s.index, centre, [values[o] for o in model.organs])
+        reg = register_slices(stored, captured, centre, mask=mask)
+        if not reg.ok:
+            raise InputError(f"registration of {s.orientation} slice {s.index} gave a degenerate transform ({reg.stop}); "
+                             "targets would be nonsense")
+        affines.append((reg.A, reg.t_mm))
+        per_slice.append({"slice": str(s), "A": reg.A.tolist(), "t_mm": reg.t_mm.tolist(), "wall_s": reg.wall_s,
+                          "iterations": reg.iterations, "metric": reg.metric})
+    idx, targets = affine_targets(model, model.positions_mm, slices, affines, centre)
+    gt_pos = gt.positions_mm[np.isin(gt.model.organ_index, [gt.model.organs.index(o) for o in model.organs])]
+    pan = model.organ_slice("pancreas")[idx]
+    errs = []
+    for s in slices:
+        on = model.slice_mask(s.orientation, s.index)[idx] & pan
+        e_u, e_v = in_plane_axes(model, s.orientation)
+        d = targets[on] - gt_pos[idx][on]
+        errs.append(np.sqrt((d @ e_u) ** 2 + (d @ e_v) ** 2))
+    err = np.concatenate(errs) if errs else np.zeros(0)
+    info = {"error_mm": float(err.mean()) if err.size else float("nan"),
+            "wall_s": float(np.mean([p["wall_s"] for p in per_slice])), "slices": per_slice}
+    info["slices"][0]["A"] = np.asarray(affines[0][0])
+    info["slices"][0]["t_mm"] = np.asarray(affines[0][1])
+    return idx, targets, info
