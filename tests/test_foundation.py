@@ -1,0 +1,123 @@
+"""Issue 2: reading images and labels, presets, the phantom, the particle model."""
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from conftest import data_case
+from warpmpm.images import InputError, crop_to_organs, load_case, mask_image, pad_square, parse_organs, resolve_labels, write_case
+from warpmpm.metrics import dice
+from warpmpm.model import build_model, voxelize
+from warpmpm.phantom import make_phantom
+
+
+@pytest.mark.parametrize("name,preset", [("totalseg_mr", "totalseg_mr"), ("totalseg_ct", "totalseg_ct")])
+def test_sample_case_particles_match_voxels(name, preset):
+    labels_path, image_path = data_case(name)
+    case = load_case(labels_path, image_path, preset)
+    model = build_model(case, "psdl")
+    img = sitk.ReadImage(labels_path)
+    arr = sitk.GetArrayFromImage(img)
+    for organ, count in model.counts().items():
+        assert count == int(np.sum(arr == case.label_map[organ])), organ
+    # world coordinates equal SimpleITK's index-to-physical mapping (direction included: the CT is flipped)
+    for p in np.random.default_rng(1).choice(model.n, 50, replace=False):
+        expected = img.TransformIndexToPhysicalPoint([int(v) for v in model.voxel_ijk[p]])
+        np.testing.assert_allclose(model.positions_mm[p], expected, atol=1e-6)
+    # voxelising the model at rest gives back every organ's mask exactly
+    for organ in model.organs:
+        mask = voxelize(model.positions_mm, case.geometry, model.organ_slice(organ))
+        assert dice(mask, arr == case.label_map[organ]) == 1.0
+        assert np.array_equal(mask, arr == case.label_map[organ])
+
+
+def test_phantom_deterministic_and_seeded():
+    a = make_phantom(seed=3, resolution=2.0)
+    b = make_phantom(seed=3, resolution=2.0)
+    c = make_phantom(seed=4, resolution=2.0)
+    assert np.array_equal(a.labels, b.labels) and np.array_equal(a.image, b.image)
+    assert not np.array_equal(a.labels, c.labels)
+
+
+def test_phantom_default_matches_paper_geometry_and_counts():
+    case = make_phantom(seed=0)
+    assert case.geometry.spacing_mm[2] == pytest.approx(3.0) and 1.2 <= case.geometry.spacing_mm[0] <= 1.5
+    model = build_model(case, "psdl")
+    ranges = {"pancreas": (7160, 71679), "stomach": (6914, 130371), "duodenum": (5177, 30234), "left_kidney": (21197, 125083)}
+    for organ, (lo, hi) in ranges.items():
+        assert lo <= model.counts()[organ] <= hi, organ
+    ks = np.unique(model.voxel_ijk[model.organ_slice("pancreas"), 2])
+    assert len(ks) <= 40
+    # the neighbours touch the pancreas (a face-adjacent voxel pair exists)
+    pan = case.labels == case.label_map["pancreas"]
+    grown = pan.copy()
+    for ax in range(3):
+        grown |= np.roll(pan, 1, ax) | np.roll(pan, -1, ax)
+    for organ in ("stomach", "duodenum", "left_kidney"):
+        assert np.any(grown & (case.labels == case.label_map[organ])), organ
+
+
+def test_sampling_step_coarsens_and_keeps_slices(tiny_case):
+    full = build_model(tiny_case, "psdl")
+    coarse = build_model(tiny_case, "psdl", sampling_step=2)
+    assert coarse.n < full.n / 3
+    assert np.isclose(coarse.volume_mm3[0], 4 * full.volume_mm3[0])
+    assert set(np.unique(coarse.voxel_ijk[:, 2])) <= set(np.unique(full.voxel_ijk[:, 2]))
+
+
+def test_slice_counts_and_subset(tiny_model):
+    counts = tiny_model.slice_counts("axial")
+    assert counts.sum() == tiny_model.n
+    k = int(np.argmax(counts[:, 0]))
+    assert tiny_model.slice_mask("axial", k).sum() == counts[k].sum()
+    p = tiny_model.subset(("pancreas",))
+    assert p.counts() == {"pancreas": tiny_model.counts()["pancreas"]}
+    assert np.array_equal(p.positions_mm, tiny_model.positions_mm[tiny_model.organ_slice("pancreas")])
+
+
+def test_formats_roundtrip_and_preprocessing(tmp_path, tiny_case):
+    for ext in ("mha", "nrrd", "nii.gz"):
+        write_case(tiny_case, tmp_path / f"l.{ext}", tmp_path / f"i.{ext}")
+        back = load_case(tmp_path / f"l.{ext}", tmp_path / f"i.{ext}", "amos")
+        assert np.array_equal(back.labels, tiny_case.labels)
+        np.testing.assert_allclose(back.geometry.origin_mm, tiny_case.geometry.origin_mm, atol=1e-4)
+    cropped, off = crop_to_organs(tiny_case, ("pancreas",), margin_mm=10)
+    assert cropped.labels.shape[2] < tiny_case.labels.shape[2]
+    full = build_model(tiny_case, "p")
+    crop = build_model(cropped, "p")
+    np.testing.assert_allclose(full.positions_mm, crop.positions_mm, atol=1e-6)
+    np.testing.assert_array_equal(full.voxel_ijk - np.array(off), crop.voxel_ijk)
+    sq, _ = pad_square(tiny_case)
+    assert sq.labels.shape[1] == sq.labels.shape[2]
+    np.testing.assert_allclose(build_model(sq, "p").positions_mm, full.positions_mm, atol=1e-6)
+    masked = mask_image(tiny_case, ("pancreas",))
+    assert np.all(masked.image[tiny_case.labels != tiny_case.label_map["pancreas"]] == 0)
+
+
+def test_bad_inputs(tmp_path, tiny_case):
+    with pytest.raises(InputError, match="file not found"):
+        load_case(tmp_path / "missing.nii.gz")
+    (tmp_path / "junk.nii.gz").write_bytes(b"not an image")
+    with pytest.raises(InputError, match="cannot read"):
+        load_case(tmp_path / "junk.nii.gz")
+    write_case(tiny_case, tmp_path / "l.mha")
+    img = tiny_case.intensity_image()
+    img.SetSpacing((9.0, 9.0, 9.0))
+    sitk.WriteImage(img, str(tmp_path / "i.mha"))
+    with pytest.raises(InputError, match="different grids.*spacing"):
+        load_case(tmp_path / "l.mha", tmp_path / "i.mha")
+    with pytest.raises(InputError, match="unknown label preset"):
+        resolve_labels("nope")
+    with pytest.raises(InputError, match="holds no pancreas"):
+        load_case(tmp_path / "l.mha", preset={"pancreas": 99, "stomach": 7})
+    case = load_case(tmp_path / "l.mha", preset={"pancreas": 10, "stomach": 7, "duodenum": 55})
+    with pytest.raises(InputError, match="duodenum.*absent"):
+        build_model(case, "pd")
+    with pytest.raises(InputError, match="empty organ combination"):
+        parse_organs("")
+    with pytest.raises(InputError, match="lacks the pancreas"):
+        parse_organs("sd")
+    with pytest.raises(InputError, match="unknown organ letter"):
+        parse_organs("px")
+    with pytest.raises(InputError, match="sampling step"):
+        build_model(tiny_case, "p", sampling_step=0)

@@ -1,0 +1,188 @@
+"""Issue 3: the MPM solver's physics on small scenes (Warp CPU)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from warpmpm.images import InputError
+from warpmpm.model import block_model, merge_models
+from warpmpm.solver import MPMModel, MPMSolver, SimulationError, SolverConfig
+
+CPU = dict(device="cpu")
+
+
+def run(solver, a, b, steps, control=None):
+    for _ in range(steps):
+        solver.step(a, b, control)
+        a, b = b, a
+    return a
+
+
+def two_blocks(gap_vox=0):
+    soft = block_model((6, 6, 6), (2, 2, 2), "pancreas")
+    stiff = block_model((6, 6, 6), (2, 2, 2), "duodenum", origin_mm=(12.0 + 2.0 * gap_vox, 0, 0))
+    return merge_models(soft, stiff)
+
+
+def test_rest_stays_at_rest():
+    pm = two_blocks()
+    m = MPMModel(pm, SolverConfig(**CPU))
+    s = MPMSolver(m)
+    a = m.state()
+    x0 = a.positions_mm()  # float32 storage of the planning positions (quantised to ~4e-6 mm)
+    a = run(s, a, m.state(), 200)
+    assert np.abs(a.positions_mm() - x0).max() < 1e-6
+
+
+def test_momentum_conserved_and_uniform_velocity_translates_rigidly():
+    pm = two_blocks()
+    m = MPMModel(pm, SolverConfig(damping_per_s=0.0, **CPU))
+    s = MPMSolver(m)
+    a, b = m.state(), m.state()
+    rng = np.random.default_rng(0)
+    v0 = rng.normal(0, 0.05, (pm.n, 3)).astype(np.float32)  # random velocities: internal motion, no walls reached
+    a.v.assign(v0)
+    p0 = (m.mass_kg[:, None] * v0).sum(0)
+    a = run(s, a, b, 50)
+    p1 = (m.mass_kg[:, None] * a.v.numpy()).sum(0)
+    assert np.linalg.norm(p1 - p0) < 1e-4 * np.abs(m.mass_kg[:, None] * v0).sum()
+    # uniform velocity: rigid translation, F stays the identity
+    a, b = m.state(), m.state()
+    u = np.array([0.2, -0.1, 0.05], dtype=np.float32)
+    a.v.assign(np.tile(u, (pm.n, 1)))
+    a = run(s, a, b, 100)
+    d = a.positions_mm() - pm.positions_mm
+    np.testing.assert_allclose(d.mean(0), u * 100 * m.dt_s * 1e3, rtol=1e-3)
+    assert d.std(0).max() < 1e-5
+    assert np.abs(a.F.numpy() - np.eye(3)).max() < 1e-5
+
+
+@pytest.mark.parametrize("organ", ["pancreas", "duodenum"])
+def test_uniaxial_stretch_gives_youngs_modulus(organ):
+    nx, ny = 16, 6
+    h = 2.0
+    pm = block_model((nx, ny, ny), (h, h, h), organ)
+    mat = pm.materials[organ]
+    E = mat.youngs_modulus_pa
+    m = MPMModel(pm, SolverConfig(**CPU))
+    s = MPMSolver(m)
+    stress = 2e-3 * E  # small strain
+    area = (ny * h * 1e-3) ** 2
+    ends = (pm.voxel_ijk[:, 0] == 0, pm.voxel_ijk[:, 0] == nx - 1)
+    f = np.zeros((pm.n, 3), dtype=np.float32)
+    f[ends[0], 0] = -stress * area / ends[0].sum()
+    f[ends[1], 0] = stress * area / ends[1].sum()
+    import warp as wp
+
+    control = wp.array(f, dtype=wp.vec3, device="cpu")
+    a, b = m.state(), m.state()
+    a = run(s, a, b, 1500, control)
+    x = a.positions_mm()
+    i1, i2 = 4, nx - 5
+    L0 = (i2 - i1) * h
+    L = x[pm.voxel_ijk[:, 0] == i2, 0].mean() - x[pm.voxel_ijk[:, 0] == i1, 0].mean()
+    strain = (L - L0) / L0
+    assert stress / strain == pytest.approx(E, rel=0.06)
+
+
+def test_contact_no_interpenetration_soft_deforms_more():
+    pm = two_blocks(gap_vox=1)
+    m = MPMModel(pm, SolverConfig(**CPU))
+    s = MPMSolver(m)
+    soft = pm.organ_index == 0
+    f = np.zeros((pm.n, 3), dtype=np.float32)
+    # press the blocks together with equal and opposite forces on their outer faces
+    outer_soft = soft & (pm.voxel_ijk[:, 0] == 0)
+    outer_stiff = ~soft & (pm.positions_mm[:, 0] == pm.positions_mm[~soft, 0].max())
+    mu_soft = pm.materials["pancreas"].mu_pa
+    total = 0.1 * mu_soft * (12e-3) ** 2
+    f[outer_soft, 0] = total / outer_soft.sum()
+    f[outer_stiff, 0] = -total / outer_stiff.sum()
+    import warp as wp
+
+    a = run(s, m.state(), m.state(), 1200, wp.array(f, dtype=wp.vec3, device="cpu"))
+    x = a.positions_mm()
+    assert x[soft, 0].max() < x[~soft, 0].min()  # no particle crossed the interface
+    def shortening(mask):
+        L0 = np.ptp(pm.positions_mm[mask, 0])
+        return (L0 - np.ptp(x[mask, 0])) / L0
+
+    assert shortening(soft) > 1e-3
+    assert shortening(soft) > 10 * shortening(~soft)
+
+
+def test_stiff_contact_stays_finite_for_2000_steps():
+    pm = two_blocks()
+    m = MPMModel(pm, SolverConfig(**CPU))
+    s = MPMSolver(m)
+    a, b = m.state(), m.state()
+    v = np.zeros((pm.n, 3), dtype=np.float32)
+    v[pm.organ_index == 0, 0] = 0.5   # the soft block hits the stiff one
+    a.v.assign(v)
+    a = run(s, a, b, 2000)
+    x = a.positions_mm()
+    assert np.all(np.isfinite(x)) and np.all(np.isfinite(a.F.numpy()))
+    assert np.abs(x - pm.positions_mm).max() < 30.0
+
+
+@pytest.mark.parametrize("F0", [
+    np.diag([0.5, 1.0, 1.0]),                                   # 50 % compression
+    np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),  # 90 degree rotation
+    np.eye(3) * 0.1 ** (1 / 3),                                  # near inversion, J = 0.1
+])
+def test_extreme_deformations_stay_finite_and_recover(F0):
+    pm = block_model((6, 6, 6), (2, 2, 2), "pancreas")
+    m = MPMModel(pm, SolverConfig(**CPU))
+    s = MPMSolver(m)
+    a, b = m.state(), m.state()
+    a.F.assign(np.tile(F0.astype(np.float32), (pm.n, 1, 1)))
+    a = run(s, a, b, 1500)
+    F = a.F.numpy()
+    assert np.all(np.isfinite(F)) and np.all(np.isfinite(a.positions_mm()))
+    J = np.linalg.det(F)
+    assert np.abs(J.mean() - 1.0) < 0.1  # released, the body returns toward its rest volume
+    # rotation-invariance: the rotated body's stretch U (polar) is near identity
+    U = np.array([np.linalg.svd(f, compute_uv=False) for f in F[:20]])
+    assert np.abs(U - 1).max() < 0.2
+
+
+def test_forces_at_clamp_limit_stay_finite():
+    from warpmpm.driving import DriveConfig, SliceDrivenEstimator, ConvergenceConfig
+
+    pm = block_model((6, 6, 6), (2, 2, 2), "pancreas")
+    top = np.nonzero(pm.voxel_ijk[:, 2] == 5)[0]
+    est = SliceDrivenEstimator(pm, driven=top, solver_config=SolverConfig(margin_mm=40, **CPU),
+                               drive_config=DriveConfig(), convergence=ConvergenceConfig(max_steps=400, th_s=50))
+    targets = pm.positions_mm[top] + np.array([0, 0, 25.0])  # far target: the clamp is active
+    with pytest.warns(RuntimeWarning):
+        res = est.estimate(targets)
+    assert np.all(np.isfinite(res.positions_mm))
+
+
+def test_dt_above_limit_refused():
+    pm = block_model((4, 4, 4), (2, 2, 2), "duodenum")
+    limit = MPMModel(pm, SolverConfig(**CPU)).dt_limit_s
+    with pytest.raises(InputError, match="above the stable limit"):
+        MPMModel(pm, SolverConfig(dt_s=limit * 1.5, **CPU))
+    MPMModel(pm, SolverConfig(dt_s=limit * 0.9, **CPU))
+
+
+def test_nan_and_leaving_grid_are_reported():
+    pm = block_model((4, 4, 4), (2, 2, 2), "pancreas")
+    m = MPMModel(pm, SolverConfig(**CPU))
+    s = MPMSolver(m)
+    a, b = m.state(), m.state()
+    v = np.zeros((pm.n, 3), dtype=np.float32)
+    v[7] = np.nan
+    a.v.assign(v)
+    with pytest.raises(SimulationError, match=r"non-finite.*step 0, particle \d+"):
+        s.step(a, b)
+    assert np.all(np.isfinite(b.positions_mm()))  # never NaN positions
+    s2 = MPMSolver(m)
+    a, b = m.state(), m.state()
+    v = np.zeros((pm.n, 3), dtype=np.float32)
+    v[5] = (1e6, 0, 0)
+    a.v.assign(v)
+    with pytest.raises(SimulationError, match=r"particle \d+ \(pancreas\) tried to leave the simulation grid at step 0"):
+        s2.step(a, b)
