@@ -25,7 +25,8 @@ def dice(a: np.ndarray, b: np.ndarray) -> float:
     return 1.0 if total == 0 else 2.0 * int(np.logical_and(a, b).sum()) / total
 
 
-def evaluate(estimate_mm: np.ndarray, truth_mm: np.ndarray, geometry: Geometry, exclude: np.ndarray | None = None) -> dict:
+def evaluate(estimate_mm: np.ndarray, truth_mm: np.ndarray, geometry: Geometry, exclude: np.ndarray | None = None,
+             sampling_step: int = 1) -> dict:
     """Error (mean, p95, max; mm) and Dice of the voxelised regions of two particle sets.
 
     Both sets are voxelised on ``geometry`` in the same way (:func:`warpmpm.model.voxelize`).
@@ -34,7 +35,8 @@ def evaluate(estimate_mm: np.ndarray, truth_mm: np.ndarray, geometry: Geometry, 
     """
     keep = np.ones(len(truth_mm), dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
     err = particle_errors_mm(estimate_mm[keep], truth_mm[keep])
-    d = dice(voxelize(estimate_mm[keep], geometry), voxelize(truth_mm[keep], geometry))
+    d = dice(voxelize(estimate_mm[keep], geometry, sampling_step=sampling_step),
+             voxelize(truth_mm[keep], geometry, sampling_step=sampling_step))
     return {
         "error_mm": float(err.mean()) if err.size else float("nan"),
         "p95_mm": float(np.percentile(err, 95)) if err.size else float("nan"),

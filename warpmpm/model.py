@@ -195,14 +195,18 @@ def build_model(
     )
 
 
-def voxelize(positions_mm: np.ndarray, geometry: Geometry, mask: np.ndarray | None = None) -> np.ndarray:
+def voxelize(positions_mm: np.ndarray, geometry: Geometry, mask: np.ndarray | None = None, sampling_step: int = 1) -> np.ndarray:
     """Boolean (z, y, x) mask of the voxels of ``geometry`` containing at least one particle.
 
     Each particle marks the voxel nearest its position (rounding its continuous index), which
-    gives back an organ's mask exactly for a model at rest with sampling step 1.
+    gives back an organ's mask exactly for a model at rest with sampling step 1. With a sampling
+    step s, a particle stands for an s x s in-plane block and marks that block.
     """
     pts = positions_mm if mask is None else positions_mm[mask]
     ijk = np.rint(geometry.world_to_index(pts)).astype(np.int64)
+    if sampling_step > 1:
+        offs = np.array([(a, b, 0) for a in range(sampling_step) for b in range(sampling_step)])
+        ijk = (ijk[:, None, :] + offs[None, :, :]).reshape(-1, 3)
     size = np.asarray(geometry.size)
     inside = np.all((ijk >= 0) & (ijk < size), axis=1)
     ijk = ijk[inside]

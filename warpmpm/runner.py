@@ -69,6 +69,7 @@ class PreparedCase:
     offset: tuple[int, int, int]
     input_centre_mm: np.ndarray
     full_model: ParticleModel
+    input_size: tuple[int, int, int] = (0, 0, 0)
 
 
 def prepare_case(cfg: CaseConfig) -> PreparedCase:
@@ -85,7 +86,7 @@ def prepare_case(cfg: CaseConfig) -> PreparedCase:
     input_centre = case.geometry.center_mm()
     cropped, offset = crop_to_organs(case, present, margin_mm=15.0)
     full = build_model(cropped, present, sampling_step=cfg.particle_step)
-    return PreparedCase(cropped, offset, input_centre, full)
+    return PreparedCase(cropped, offset, input_centre, full, case.geometry.size)
 
 
 def resolve_slices(prep: PreparedCase, model: ParticleModel, text: str | None) -> list[DrivingSlice]:
@@ -101,9 +102,11 @@ def resolve_slices(prep: PreparedCase, model: ParticleModel, text: str | None) -
         axis = orientation_image_axis(model.geometry, s.orientation)
         size_in = prep.case.geometry.size[axis] + 0  # cropped size, for the message below
         local = s.index - prep.offset[axis]
+        if not (0 <= s.index < prep.input_size[axis]):
+            raise InputError(f"{s.orientation} slice {s.index} is outside the volume (valid 0..{prep.input_size[axis] - 1})")
         if not (0 <= local < size_in):
             raise InputError(f"{s.orientation} slice {s.index} holds none of the organs in use "
-                             f"(they span input indices {prep.offset[axis]}..{prep.offset[axis] + size_in - 1}) or is outside the volume")
+                             f"(they span input indices {prep.offset[axis]}..{prep.offset[axis] + size_in - 1})")
         out.append(DrivingSlice(s.orientation, int(local)))
     return out
 
@@ -189,7 +192,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, rrd=None)
     geom = prep.case.geometry
 
     def score(pos):
-        return evaluate(pos[pmask], gt_pos[pmask], geom, excl[pmask])
+        return evaluate(pos[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step)
 
     results: dict[str, dict] = {}
     if "initial" in cfg.baselines:
