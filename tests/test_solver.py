@@ -186,3 +186,29 @@ def test_nan_and_leaving_grid_are_reported():
     a.v.assign(v)
     with pytest.raises(SimulationError, match=r"particle \d+ \(pancreas\) tried to leave the simulation grid at step 0"):
         s2.step(a, b)
+
+
+def test_polar_rotation_equals_svd_rotation():
+    import warp as wp
+
+    from warpmpm import kernels
+
+    @wp.kernel
+    def rot(F: wp.array(dtype=wp.mat33), R: wp.array(dtype=wp.mat33)):
+        i = wp.tid()
+        R[i] = kernels.polar_rotation(F[i])
+
+    rng = np.random.default_rng(0)
+    mats = []
+    for _ in range(200):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        q *= np.sign(np.linalg.det(q))
+        mats.append(q @ np.diag(rng.uniform(0.3, 2.0, 3)) @ np.linalg.qr(rng.normal(size=(3, 3)))[0])
+    mats.append(np.diag([0.5, 1, 1]))
+    mats.append(np.eye(3) * 0.1 ** (1 / 3))  # J = 0.1 -> fallback path
+    F = np.array([m if np.linalg.det(m) > 0 else -m for m in mats], dtype=np.float32)
+    R = wp.zeros(len(F), dtype=wp.mat33, device="cpu")
+    wp.launch(rot, len(F), [wp.array(F, dtype=wp.mat33, device="cpu"), R], device="cpu")
+    for f, r in zip(F.astype(np.float64), R.numpy()):
+        u, _, vt = np.linalg.svd(f)
+        np.testing.assert_allclose(r, u @ vt, atol=2e-5)
