@@ -33,6 +33,8 @@ def main(argv=None):
     p.add_argument("--slice-stride", type=int, default=1)
     p.add_argument("--device", default=None)
     p.add_argument("--out", default="runs/sweep.csv")
+    p.add_argument("--workers", type=int, default=1, help="parallel tasks (one per case x deformation)")
+    p.add_argument("--scheduler", default=None, help="'local' for a Dask LocalCluster of --workers, or a Dask scheduler address")
     a = p.parse_args(argv)
     try:
         if a.labels:
@@ -45,7 +47,7 @@ def main(argv=None):
         os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
         base = CaseConfig(particle_step=a.particle_step, device=a.device, targets=a.targets)
         rows = sweep(cases, [int(d) for d in a.deformations.split(",")], combos, tuple(a.orientations.split(",")), a.out,
-                     protocol=a.protocol, slice_stride=a.slice_stride, base=base)
+                     protocol=a.protocol, slice_stride=a.slice_stride, base=base, scheduler=a.scheduler, workers=a.workers)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -173,6 +173,7 @@ class VolumeRegistration:
     offset_mm: np.ndarray
     wall_s: float
     metric: float
+    fallback: bool = False
 
     def apply(self, points_mm: np.ndarray) -> np.ndarray:
         return np.asarray(points_mm) @ self.matrix.T + self.offset_mm
@@ -208,14 +209,27 @@ def register_volumes_affine(planning: np.ndarray, target: np.ndarray, geometry: 
     reg.SetSmoothingSigmasPerLevel([max(0.0, f / 2.0) for f in levels])
     reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOff()
     t0 = time.perf_counter()
+    identity_metric = reg.MetricEvaluate(fixed, moving)
     reg.Execute(fixed, moving)
     wall = time.perf_counter() - t0
     # tx maps target points to planning points: x = M (y - c) + c + tr. Invert: y = M^-1 (x - c - tr) + c.
     M = np.asarray(tx.GetMatrix()).reshape(3, 3)
     tr = np.asarray(tx.GetTranslation())
     c = np.asarray(tx.GetCenter())
+    # The metric at the result, at full resolution; a result worse than no motion (a diverged
+    # optimisation) is replaced by the identity and flagged.
+    check = sitk.ImageRegistrationMethod()
+    check.SetMetricAsMeanSquares()
+    if mask is not None:
+        check.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
+    check.SetInitialTransform(tx)
+    check.SetInterpolator(sitk.sitkLinear)
+    final_metric = check.MetricEvaluate(fixed, moving)
+    ok = np.all(np.isfinite(M)) and np.all(np.isfinite(tr)) and abs(np.linalg.det(M)) > 1e-3 and final_metric <= identity_metric
+    if not ok:
+        return VolumeRegistration(np.eye(3), np.zeros(3), wall, float(identity_metric), fallback=True)
     Minv = np.linalg.inv(M)
-    return VolumeRegistration(Minv, c - Minv @ (c + tr), wall, float(reg.GetMetricValue()))
+    return VolumeRegistration(Minv, c - Minv @ (c + tr), wall, float(final_metric))
 
 
 def organ_intensity_volume(labels: np.ndarray, label_values: dict[str, int], geometry: Geometry, sigma_mm: float = 2.0) -> np.ndarray:

@@ -95,8 +95,6 @@ def resolve_slices(prep: PreparedCase, model: ParticleModel, text: str | None) -
         axis = orientation_image_axis(model.geometry, "axial")
         ks = model.voxel_ijk[model.organ_slice("pancreas"), axis]
         return [DrivingSlice("axial", int(np.median(ks)))]
-    if text == "auto":
-        raise InputError("--slices auto needs the trained selection model, which this version does not ship yet; give slices explicitly")
     out = []
     for s in parse_slices(text):
         axis = orientation_image_axis(model.geometry, s.orientation)
@@ -162,7 +160,7 @@ def volume_registration_baseline(prep: PreparedCase, gt: GroundTruth, model: Par
     m_img = case.geometry.apply_to(sitk.GetImageFromArray(gt_mask.astype(np.uint8)))
     mask = sitk.GetArrayFromImage(sitk.BinaryDilate(m_img, [3, 3, 1])).astype(bool)
     reg = register_volumes_affine(planning, target, case.geometry, mask=mask)
-    return reg.apply(model.positions_mm), {"wall_s": reg.wall_s}
+    return reg.apply(model.positions_mm), {"wall_s": reg.wall_s, "fallback_to_identity": reg.fallback}
 
 
 def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, rrd=None) -> dict:
@@ -331,63 +329,113 @@ def _json_default(o):
 
 SWEEP_FIELDS = ["case", "protocol", "deformation", "organs", "orientation", "slice", "targets", "n_driven", "n_pancreas",
                 "error_mm", "p95_mm", "dice", "steps", "wall_s", "converged",
-                "initial_error_mm", "initial_dice", "propagate_error_mm", "propagate_dice"]
+                "initial_error_mm", "initial_dice", "propagate_error_mm", "propagate_dice",
+                "count_pancreas", "count_stomach", "count_duodenum", "count_left_kidney"]
+
+
+def _row_key(r) -> tuple:
+    return (str(r["case"]), str(r["protocol"]), str(r["deformation"]), str(r["organs"]), str(r["orientation"]), str(r["slice"]))
+
+
+def sweep_task(case: dict, deformation: int, combinations, orientations, protocol: str, slice_stride: int, base: CaseConfig,
+               done: frozenset = frozenset()) -> list[dict]:
+    """All rows of one (case, deformation): every combination x orientation x pancreas slice not in ``done``.
+
+    A plain function of picklable arguments, so it runs inline, in a process pool or on a Dask worker.
+    """
+    name = case.get("name", "case")
+    cfg0 = replace(base, **{k: v for k, v in case.items() if k != "name"}, protocol=protocol, deformation=int(deformation),
+                   baselines=("initial", "propagate"))
+    prep = prepare_case(cfg0)
+    gt = None
+    rows = []
+    for combo in combinations:
+        organs = parse_organs(combo)
+        if not set(organs) <= set(prep.full_model.organs):
+            continue
+        model = prep.full_model.subset(organs)
+        for orientation in orientations:
+            axis = orientation_image_axis(model.geometry, orientation)
+            counts = prep.full_model.slice_counts(orientation)
+            ks = np.unique(model.voxel_ijk[model.organ_slice("pancreas"), axis])[::slice_stride]
+            for k in ks:
+                k_in = int(k) + prep.offset[axis]
+                key = (name, protocol, str(deformation), combo, orientation, str(k_in))
+                if key in done:
+                    continue
+                if gt is None:
+                    gt = make_ground_truth(prep, cfg0)
+                out = run_prepared(prep, gt, replace(cfg0, organs=combo, slices=f"{orientation}:{k_in}"))
+                r = out["results"]
+                on = {o: int(counts[k, i]) for i, o in enumerate(prep.full_model.organs)}
+                rows.append({"case": name, "protocol": protocol, "deformation": int(deformation), "organs": combo,
+                             "orientation": orientation, "slice": k_in, "targets": cfg0.targets, "n_driven": out["n_driven"],
+                             "n_pancreas": out["n_particles"]["pancreas"], "error_mm": r["estimate"]["error_mm"],
+                             "p95_mm": r["estimate"]["p95_mm"], "dice": r["estimate"]["dice"], "steps": r["estimate"]["steps"],
+                             "wall_s": r["estimate"]["wall_s"], "converged": r["estimate"]["converged"],
+                             "initial_error_mm": r["initial"]["error_mm"], "initial_dice": r["initial"]["dice"],
+                             "propagate_error_mm": r["propagate"]["error_mm"], "propagate_dice": r["propagate"]["dice"],
+                             **{f"count_{o}": (on.get(o, 0) if o in organs else 0) for o in ORGANS}})
+    return rows
 
 
 def sweep(cases: list[dict], deformations, combinations, orientations=("axial",), out_csv: str = "sweep.csv", *,
-          protocol: str = "paper", slice_stride: int = 1, base: CaseConfig | None = None, progress=print) -> list[dict]:
+          protocol: str = "paper", slice_stride: int = 1, base: CaseConfig | None = None, scheduler: str | None = None,
+          workers: int = 1, progress=print) -> list[dict]:
     """Brute-force sweep; one CSV row per simulation, resumable (finished rows are skipped).
 
     ``cases``: dicts of :class:`CaseConfig` fields naming a case (``{"phantom_seed": 3}`` or
-    ``{"labels": ..., "image": ..., "preset": ...}``) with a ``name``.
+    ``{"labels": ..., "image": ..., "preset": ...}``) with a ``name``. Work is split into one task per
+    (case, deformation). ``scheduler=None`` runs them here (``workers > 1``: a local process pool);
+    ``"local"`` starts a Dask ``LocalCluster`` of ``workers`` processes; any other value is a Dask
+    scheduler address (``tcp://host:8786``). Rows are written here as tasks finish.
     """
     base = base or CaseConfig()
-    done = set()
     rows: list[dict] = []
     if os.path.exists(out_csv):
         with open(out_csv) as f:
-            for r in csv.DictReader(f):
-                rows.append(r)
-                done.add((r["case"], r["protocol"], str(r["deformation"]), r["organs"], r["orientation"], str(r["slice"])))
+            rows = list(csv.DictReader(f))
+    done = frozenset(_row_key(r) for r in rows)
+    tasks = [(c, int(d)) for c in cases for d in deformations]
+    args = [(c, d, tuple(combinations), tuple(orientations), protocol, slice_stride, base, done) for c, d in tasks]
     new_file = not os.path.exists(out_csv)
     with open(out_csv, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=SWEEP_FIELDS)
+        w = csv.DictWriter(f, fieldnames=SWEEP_FIELDS, extrasaction="ignore")
         if new_file:
             w.writeheader()
-        for c in cases:
-            name = c.get("name", "case")
-            cfg0 = replace(base, **{k: v for k, v in c.items() if k != "name"}, protocol=protocol, baselines=("initial", "propagate"))
-            prep = prepare_case(cfg0)
-            for deformation in deformations:
-                cfg1 = replace(cfg0, deformation=int(deformation))
-                gt = None
-                for combo in combinations:
-                    model = prep.full_model.subset(parse_organs(combo))
-                    for orientation in orientations:
-                        axis = orientation_image_axis(model.geometry, orientation)
-                        ks = np.unique(model.voxel_ijk[model.organ_slice("pancreas"), axis])[::slice_stride]
-                        for k in ks:
-                            k_in = int(k) + prep.offset[axis]
-                            key = (name, protocol, str(deformation), combo, orientation, str(k_in))
-                            if key in done:
-                                continue
-                            if gt is None:
-                                gt = make_ground_truth(prep, cfg1)
-                            cfg = replace(cfg1, organs=combo, slices=f"{orientation}:{k_in}")
-                            out = run_prepared(prep, gt, cfg)
-                            r = out["results"]
-                            row = {"case": name, "protocol": protocol, "deformation": deformation, "organs": combo,
-                                   "orientation": orientation, "slice": k_in, "targets": cfg.targets, "n_driven": out["n_driven"],
-                                   "n_pancreas": out["n_particles"]["pancreas"], "error_mm": r["estimate"]["error_mm"],
-                                   "p95_mm": r["estimate"]["p95_mm"], "dice": r["estimate"]["dice"], "steps": r["estimate"]["steps"],
-                                   "wall_s": r["estimate"]["wall_s"], "converged": r["estimate"]["converged"],
-                                   "initial_error_mm": r["initial"]["error_mm"], "initial_dice": r["initial"]["dice"],
-                                   "propagate_error_mm": r["propagate"]["error_mm"], "propagate_dice": r["propagate"]["dice"]}
-                            w.writerow(row)
-                            f.flush()
-                            rows.append({k: str(v) for k, v in row.items()})
-                            if progress:
-                                progress(f"{name} def{deformation} {combo} {orientation}:{k_in} error {row['error_mm']:.2f} mm")
+
+        def keep(task_rows):
+            for row in task_rows:
+                w.writerow(row)
+                rows.append({k: str(v) for k, v in row.items()})
+                if progress:
+                    progress(f"{row['case']} def{row['deformation']} {row['organs']} {row['orientation']}:{row['slice']} "
+                             f"error {row['error_mm']:.2f} mm")
+            f.flush()
+
+        if scheduler is None and workers <= 1:
+            for a in args:
+                keep(sweep_task(*a))
+        elif scheduler is None:
+            import concurrent.futures as cf
+            import multiprocessing as mp
+
+            with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+                for fut in cf.as_completed([ex.submit(sweep_task, *a) for a in args]):
+                    keep(fut.result())
+        else:
+            from distributed import Client, LocalCluster, as_completed
+
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) if scheduler == "local" else None
+            client = Client(cluster if cluster is not None else scheduler)
+            try:
+                futures = [client.submit(sweep_task, *a, pure=False) for a in args]
+                for fut in as_completed(futures):
+                    keep(fut.result())
+            finally:
+                client.close()
+                if cluster is not None:
+                    cluster.close()
     return rows
 
 
@@ -432,7 +480,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--phantom-seed", type=int, default=0, help="seed of the phantom (and of the GT perturbations)")
     p.add_argument("--phantom-resolution", type=float, default=1.0, help="phantom voxel size factor (2: 8x fewer voxels)")
     p.add_argument("--organs", default="psdl", help="organ combination: p, ps, pd, pl, psd, psl, pdl, psdl")
-    p.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); default: mid-pancreas axial")
+    p.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); "
+                   "'auto': the slice and organ combination the selection model ranks best; default: mid-pancreas axial")
+    p.add_argument("--selector", default="selection_model.json", help="trained selection model for --slices auto")
     p.add_argument("--protocol", default="paper", choices=["paper", "contact"])
     p.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (also varies the contact seed)")
     p.add_argument("--targets", default="affine", choices=["affine", "gt", "registration"])
@@ -445,6 +495,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
     p.add_argument("--json", help="write the results as JSON to this file")
     return p
+
+
+def auto_condition(cfg: CaseConfig, selector_path: str) -> tuple[str, str, dict]:
+    """(organs, slices) chosen by the selection model for this case, and what it reported."""
+    from .selection import SelectionModel
+
+    sel = SelectionModel.load(selector_path)
+    prep = prepare_case(replace(cfg, slices=None, organs="p"))
+    ranked, wall = sel.rank(prep.full_model, k=5)
+    (orientation, k, combo), pred = ranked[0]
+    axis = orientation_image_axis(prep.full_model.geometry, orientation)
+    info = {"selection_ms": wall * 1e3, "predicted": pred, "top": [[list(key), p] for key, p in ranked]}
+    return combo, f"{orientation}:{k + prep.offset[axis]}", info
 
 
 def config_from_args(a) -> CaseConfig:
@@ -468,7 +531,13 @@ def main(argv=None) -> int:
             d = os.path.dirname(os.path.abspath(a.rrd))
             if not os.path.isdir(d):
                 raise InputError(f"output folder {d} for --rrd does not exist")
+        selection = None
+        if cfg.slices == "auto":
+            organs, slices, selection = auto_condition(cfg, a.selector)
+            cfg = replace(cfg, organs=organs, slices=slices)
         out = run_case(cfg, rrd=a.rrd)
+        if selection is not None:
+            out["selection"] = selection
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -476,6 +545,9 @@ def main(argv=None) -> int:
         print(f"simulation error: {exc}", file=sys.stderr)
         return 3
     print(format_table(out))
+    if out.get("selection"):
+        print(f"selected {out['organs']} {','.join(out['slices'])} in {out['selection']['selection_ms']:.2f} ms "
+              f"(predicted {out['selection']['predicted']:.2f})")
     if a.json:
         write_json_atomic(a.json, out)
         print(f"wrote {a.json}")
