@@ -148,3 +148,14 @@ def test_run_case_script_runs_as_a_program(tmp_path):
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(out.read_text())["organs"] == "p"
+
+
+def test_gt_label_map_at_rest_is_the_planning_map_for_sampled_models(tiny_case):
+    from warpmpm.groundtruth import GroundTruth
+
+    for step in (1, 2):
+        model = build_model(tiny_case, "psdl", sampling_step=step)
+        gt = GroundTruth(model, model.positions_mm.copy(), "paper")
+        lab = gt.label_map(tiny_case.label_map)
+        planning = np.where(np.isin(tiny_case.labels, list(tiny_case.label_map.values())), tiny_case.labels, 0)
+        assert dice(lab > 0, planning > 0) > (0.999 if step == 1 else 0.9)

@@ -83,7 +83,7 @@ class GroundTruth:
         # Stomach first, pancreas last, as the phantom's labels are drawn.
         for organ in ("stomach", "left_kidney", "duodenum", "pancreas"):
             if organ in self.model.organs:
-                out[voxelize(self.positions_mm, g, self.model.organ_slice(organ))] = label_values[organ]
+                out[voxelize(self.positions_mm, g, self.model.organ_slice(organ), self.model.sampling_step)] = label_values[organ]
         return out
 
 

@@ -86,12 +86,13 @@ class SliceRegistration:
 
 def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, *, mask: sitk.Image | None = None,
                     metric: str = "correlation", iterations: int = 100, levels: tuple[int, ...] = (2, 1),
-                    sampling: float = 0.5, seed: int = 1) -> SliceRegistration:
+                    sampling: float = 1.0, seed: int = 1, crop_margin_mm: float = 20.0) -> SliceRegistration:
     """2D affine registration of the stored slice (t-1) onto the captured slice (t).
 
     ``metric``: ``correlation`` (normalised cross-correlation: robust to the intensity scaling
-    of MR), ``meansquares`` or ``mattes`` (mutual information). ``mask`` restricts the metric to
-    the organs of the planning contour on the stored slice. Raises :class:`InputError` for a
+    of MR), ``meansquares`` or ``mattes`` (mutual information). ``mask`` (the organs of the
+    planning contour on the stored slice, dilated) restricts the metric, and both slices are
+    cropped to its bounding box plus ``crop_margin_mm``. Raises :class:`InputError` for a
     blank or constant slice; returns ``ok=False`` when the result is non-finite or degenerate.
     """
     for name, im in (("stored", stored), ("captured", captured)):
@@ -100,6 +101,21 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
             raise InputError(f"the {name} slice is blank or constant; nothing to register")
     fixed = sitk.Cast(captured, sitk.sitkFloat32)
     moving = sitk.Cast(stored, sitk.sitkFloat32)
+    if mask is not None:
+        # Work on the organs' bounding box plus a margin for the motion: far fewer pixels, same
+        # physical coordinates (RegionOfInterest keeps the origin of the kept region).
+        arr = sitk.GetArrayViewFromImage(mask)
+        jj, ii = np.nonzero(arr)
+        if len(ii) == 0:
+            raise InputError("the registration mask is empty: no organ of the planning contour on this slice")
+        sp = mask.GetSpacing()
+        mx, my = int(np.ceil(crop_margin_mm / sp[0])), int(np.ceil(crop_margin_mm / sp[1]))
+        lo = [max(0, int(ii.min()) - mx), max(0, int(jj.min()) - my)]
+        hi = [min(mask.GetSize()[0], int(ii.max()) + mx + 1), min(mask.GetSize()[1], int(jj.max()) + my + 1)]
+        size = [hi[0] - lo[0], hi[1] - lo[1]]
+        fixed = sitk.RegionOfInterest(fixed, size, lo)
+        moving = sitk.RegionOfInterest(moving, size, lo)
+        mask = sitk.RegionOfInterest(sitk.Cast(mask, sitk.sitkUInt8), size, lo)
     reg = sitk.ImageRegistrationMethod()
     if metric == "correlation":
         reg.SetMetricAsCorrelation()
@@ -113,7 +129,7 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
     if sampling < 1:
         reg.SetMetricSamplingPercentage(sampling, seed)
     if mask is not None:
-        reg.SetMetricMovingMask(sitk.Cast(mask, sitk.sitkUInt8))
+        reg.SetMetricFixedMask(mask)
     tx = sitk.AffineTransform(2)
     tx.SetCenter((0.0, 0.0))
     reg.SetInitialTransform(tx, inPlace=True)
@@ -209,7 +225,6 @@ def register_volumes_affine(planning: np.ndarray, target: np.ndarray, geometry: 
     reg.SetSmoothingSigmasPerLevel([max(0.0, f / 2.0) for f in levels])
     reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOff()
     t0 = time.perf_counter()
-    identity_metric = reg.MetricEvaluate(fixed, moving)
     reg.Execute(fixed, moving)
     wall = time.perf_counter() - t0
     # tx maps target points to planning points: x = M (y - c) + c + tr. Invert: y = M^-1 (x - c - tr) + c.
@@ -225,7 +240,18 @@ def register_volumes_affine(planning: np.ndarray, target: np.ndarray, geometry: 
     check.SetInitialTransform(tx)
     check.SetInterpolator(sitk.sitkLinear)
     final_metric = check.MetricEvaluate(fixed, moving)
-    ok = np.all(np.isfinite(M)) and np.all(np.isfinite(tr)) and abs(np.linalg.det(M)) > 1e-3 and final_metric <= identity_metric
+    valid = check.GetMetricNumberOfValidPoints()
+    ident = sitk.ImageRegistrationMethod()
+    ident.SetMetricAsMeanSquares()
+    if mask is not None:
+        ident.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
+    ident.SetInitialTransform(sitk.AffineTransform(3))
+    ident.SetInterpolator(sitk.sitkLinear)
+    identity_metric = ident.MetricEvaluate(fixed, moving)
+    valid_identity = ident.GetMetricNumberOfValidPoints()
+    # A diverged optimisation maps the organs off the image: few valid samples, a misleadingly small metric.
+    ok = (np.all(np.isfinite(M)) and np.all(np.isfinite(tr)) and abs(np.linalg.det(M)) > 1e-3
+          and final_metric <= identity_metric and valid >= 0.8 * valid_identity)
     if not ok:
         return VolumeRegistration(np.eye(3), np.zeros(3), wall, float(identity_metric), fallback=True)
     Minv = np.linalg.inv(M)
