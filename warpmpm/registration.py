@@ -240,18 +240,21 @@ def register_volumes_affine(planning: np.ndarray, target: np.ndarray, geometry: 
     check.SetInitialTransform(tx)
     check.SetInterpolator(sitk.sitkLinear)
     final_metric = check.MetricEvaluate(fixed, moving)
-    valid = check.GetMetricNumberOfValidPoints()
-    ident = sitk.ImageRegistrationMethod()
-    ident.SetMetricAsMeanSquares()
+    identity = sitk.ImageRegistrationMethod()
+    identity.SetMetricAsMeanSquares()
     if mask is not None:
-        ident.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
-    ident.SetInitialTransform(sitk.AffineTransform(3))
-    ident.SetInterpolator(sitk.sitkLinear)
-    identity_metric = ident.MetricEvaluate(fixed, moving)
-    valid_identity = ident.GetMetricNumberOfValidPoints()
-    # A diverged optimisation maps the organs off the image: few valid samples, a misleadingly small metric.
+        identity.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
+    identity.SetInitialTransform(sitk.AffineTransform(3))
+    identity.SetInterpolator(sitk.sitkLinear)
+    identity_metric = identity.MetricEvaluate(fixed, moving)
+    # A diverged optimisation maps the organs off the image, where ITK drops the samples and the
+    # metric of the few left is misleadingly small: require most mask points to land inside.
+    kk, jj, ii = np.nonzero(mask) if mask is not None else np.nonzero(np.ones(target.shape, dtype=bool))
+    pts = geometry.index_to_world(np.stack([ii, jj, kk], axis=1)[:: max(1, len(ii) // 20000)])
+    mapped = geometry.world_to_index((pts - c) @ M.T + c + tr)
+    inside = float(np.mean(np.all((mapped >= -0.5) & (mapped <= np.asarray(geometry.size) - 0.5), axis=1)))
     ok = (np.all(np.isfinite(M)) and np.all(np.isfinite(tr)) and abs(np.linalg.det(M)) > 1e-3
-          and final_metric <= identity_metric and valid >= 0.8 * valid_identity)
+          and final_metric <= identity_metric and inside >= 0.8)
     if not ok:
         return VolumeRegistration(np.eye(3), np.zeros(3), wall, float(identity_metric), fallback=True)
     Minv = np.linalg.inv(M)
