@@ -197,11 +197,14 @@ def fit_in_plane_affine(before_mm: np.ndarray, after_mm: np.ndarray, e_u: np.nda
     return sol[:2].T, sol[2]
 
 
-def warp_image(case: Case, model: ParticleModel, gt_positions_mm: np.ndarray, sigma_mm: float = 4.0) -> np.ndarray:
+def warp_image(case: Case, model: ParticleModel, gt_positions_mm: np.ndarray, sigma_mm: float = 4.0,
+               far_sigma_mm: float = 25.0) -> np.ndarray:
     """The planning image warped by the GT particle motion (z, y, x).
 
-    A backward displacement field is scattered from the particles at their GT positions, filled
-    by normalised Gaussian smoothing and blended smoothly to identity outside the organs.
+    A backward displacement field is scattered from the particles at their GT positions and filled
+    by normalised Gaussian smoothing at two scales: ``sigma_mm`` near the organs, blended smoothly
+    into a ``far_sigma_mm`` extrapolation elsewhere, so the tissue around the organs moves with
+    them (the paper deforms whole slices) instead of tearing at the organ boundaries.
     """
     if case.image is None:
         raise InputError(f"case {case.name} has no intensity image to warp")
@@ -216,14 +219,19 @@ def warp_image(case: Case, model: ParticleModel, gt_positions_mm: np.ndarray, si
     np.add.at(num, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), -u)
     np.add.at(den, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), 1.0)
 
-    def smooth(a):
+    def smooth(a, sigma):
         im = g.apply_to(sitk.GetImageFromArray(a.astype(np.float32)))
-        return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(im, sigma_mm))
+        return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(im, sigma)).astype(np.float64)
 
-    den_s = smooth(den)
-    field_ = np.stack([smooth(num[..., c]) for c in range(3)], axis=-1)
-    weight = np.clip(den_s / max(den_s.max(), 1e-12) * 4.0, 0.0, 1.0)
-    field_ = field_ / np.maximum(den_s, 1e-6)[..., None] * weight[..., None]
+    def fill(sigma):
+        d = smooth(den, sigma)
+        f = np.stack([smooth(num[..., c], sigma) for c in range(3)], axis=-1)
+        return f / np.maximum(d, 1e-9)[..., None], d
+
+    near, den_near = fill(sigma_mm)
+    far, _ = fill(far_sigma_mm)
+    weight = np.clip(den_near / max(den_near.max(), 1e-12) * 4.0, 0.0, 1.0)[..., None]
+    field_ = weight * near + (1.0 - weight) * far
     disp = sitk.GetImageFromArray(field_.astype(np.float64), isVector=True)
     g.apply_to(disp)
     tx = sitk.DisplacementFieldTransform(disp)

@@ -85,8 +85,8 @@ class SliceRegistration:
 
 
 def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, *, mask: sitk.Image | None = None,
-                    metric: str = "correlation", iterations: int = 100, levels: tuple[int, ...] = (2, 1),
-                    sampling: float = 1.0, seed: int = 1, crop_margin_mm: float = 20.0) -> SliceRegistration:
+                    metric: str = "correlation", iterations: int = 100, levels: tuple[int, ...] = (4, 2, 1),
+                    sampling: float = 1.0, seed: int = 1, crop_margin_mm: float = 40.0) -> SliceRegistration:
     """2D affine registration of the stored slice (t-1) onto the captured slice (t).
 
     ``metric``: ``correlation`` (normalised cross-correlation: robust to the intensity scaling
@@ -129,7 +129,7 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
     if sampling < 1:
         reg.SetMetricSamplingPercentage(sampling, seed)
     if mask is not None:
-        reg.SetMetricFixedMask(mask)
+        reg.SetMetricMovingMask(mask)  # the contour belongs to the stored slice (t-1)
     tx = sitk.AffineTransform(2)
     tx.SetCenter((0.0, 0.0))
     reg.SetInitialTransform(tx, inPlace=True)
