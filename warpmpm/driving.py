@@ -256,10 +256,11 @@ def pid_force(
     max_accel: float,
     dt: float,
     f_ext: wp.array(dtype=wp.vec3),
-    sums: wp.array(dtype=float),
+    sums: wp.array(dtype=float, ndim=2),
+    row: int,
 ):
     """PID force on driven particle ``driven[j]`` toward ``target[j]``; accumulates the residual sums
-    ``sums = [sum |e|^2, sum |target - centre|^2]``."""
+    ``sums[row] = [sum |e|^2, sum |target - centre|^2]`` (one row per step, read back in batches)."""
     j = wp.tid()
     p = driven[j]
     e = target[j] - x[p]
@@ -271,8 +272,8 @@ def pid_force(
         a = a * (max_accel / n)
     f_ext[p] = mass[p] * a
     r = target[j] - centre
-    wp.atomic_add(sums, 0, wp.dot(e, e))
-    wp.atomic_add(sums, 1, wp.dot(r, r))
+    wp.atomic_add(sums, row, 0, wp.dot(e, e))
+    wp.atomic_add(sums, row, 1, wp.dot(r, r))
 
 
 @dataclass
@@ -340,13 +341,20 @@ class SliceDrivenEstimator:
         self._integral = wp.zeros(nd, dtype=wp.vec3, device=d)
         self._bias = wp.zeros(nd, dtype=wp.vec3, device=d)
         self._force = wp.zeros(model.n, dtype=wp.vec3, device=d)
-        self._sums = wp.zeros(2, dtype=float, device=d)
+        # residual sums of the steps since the last read-back: read every ``sync_every`` steps so a GPU
+        # run does not synchronise with the host every step (every step on the CPU, where it is free)
+        self.sync_every = 1 if not str(d).startswith("cuda") else 50
+        self._sums = wp.zeros((self.sync_every, 2), dtype=float, device=d)
         self._centre = wp.vec3(*self.mpm.to_local_m(model.center_mm()[None, :])[0])
         self.callback = callback
         self.frames = 0
 
     def positions_mm(self) -> np.ndarray:
         return self.state.positions_mm()
+
+    def _steps_run(self, history: list) -> range:
+        k = self.sync_every
+        return range(((len(history) + k - 1) // k) * k)
 
     def driven_positions_mm(self) -> np.ndarray:
         return self.positions_mm()[self.driven]
@@ -383,26 +391,33 @@ class SliceDrivenEstimator:
         rel_hist, rms_hist = [], []
         nd = len(self.driven)
         t0 = time.perf_counter()
-        while True:
+        done = False
+        step = 0
+        while not done:
             self._sums.zero_()
-            wp.launch(pid_force, nd, [self._driven_wp, self._target, self.state.x, self.state.v, self.mpm.mass, self._integral,
-                                      self._bias, self._centre, g["kp_per_s2"], g["kd_per_s"], g["ki_per_s3"], g["max_accel_m_s2"], dt,
-                                      self._force, self._sums], device=d)
-            self.solver.step(self.state, self._other, self._force)
-            self.state, self._other = self._other, self.state
-            e2, r2 = (float(v) for v in self._sums.numpy())
-            rel = math.sqrt(e2 / max(r2, 1e-30))
-            rel_hist.append(rel)
-            rms_hist.append(math.sqrt(e2 / nd) * 1e3)
-            if self.callback is not None:
-                self.callback(self, len(rel_hist), rel, rms_hist[-1])
-            if conv.update(rel):
-                break
+            for row in range(self.sync_every):
+                wp.launch(pid_force, nd, [self._driven_wp, self._target, self.state.x, self.state.v, self.mpm.mass, self._integral,
+                                          self._bias, self._centre, g["kp_per_s2"], g["kd_per_s"], g["ki_per_s3"],
+                                          g["max_accel_m_s2"], dt, self._force, self._sums, row], device=d)
+                self.solver.step(self.state, self._other, self._force)
+                self.state, self._other = self._other, self.state
+            sums = self._sums.numpy()
+            for e2, r2 in sums:
+                step += 1
+                rel = math.sqrt(e2 / max(r2, 1e-30))
+                rel_hist.append(rel)
+                rms_hist.append(math.sqrt(e2 / nd) * 1e3)
+                if self.callback is not None:
+                    self.callback(self, step, rel, rms_hist[-1])
+                if conv.update(rel):
+                    done = True
+                    break
         self.solver.check()
         wall = time.perf_counter() - t0
         self._force.zero_()
         self.frames += 1
-        result = DriveResult(self.positions_mm(), conv.steps, wall, np.asarray(rel_hist), np.asarray(rms_hist),
+        # on a GPU the loop runs whole batches of sync_every steps: report the steps actually run
+        result = DriveResult(self.positions_mm(), len(self._steps_run(rel_hist)), wall, np.asarray(rel_hist), np.asarray(rms_hist),
                              conv.converged, conv.reason, dict(g))
         if not result.converged:
             warnings.warn(f"estimate did not converge in {conv.steps} steps (relative residual {rel:.2e}, "

@@ -54,7 +54,8 @@ class SolverConfig:
         mass_scaling: give all materials the stiffest one's wave speed (see module docstring).
         damping_per_s: grid velocity damping rate (1/s); None derives it from the scene.
         device: Warp device (``"cpu"``, ``"cuda"``, ``"cuda:0"``); None: CUDA when available.
-        check_every: read the NaN / out-of-grid flag back every this many steps (1 on CPU is cheap).
+        check_every: read the NaN / out-of-grid flag back every this many steps; None: every step on
+            the CPU (free), every 50 on CUDA (a read-back synchronises the GPU with the host).
     """
 
     particles_per_cell: float = 4.0
@@ -67,7 +68,7 @@ class SolverConfig:
     mass_scaling: bool = True
     damping_per_s: float | None = None
     device: str | None = None
-    check_every: int = 1
+    check_every: int | None = None
 
 
 def default_device() -> str:
@@ -220,6 +221,8 @@ class MPMSolver:
         self.zero_force = wp.zeros(model.n, dtype=wp.vec3, device=d)
         self.status = wp.array(np.array([0, 2**31 - 1, 2**31 - 1], dtype=np.int32), dtype=int, device=d)
         self.step_count = 0
+        ce = model.config.check_every
+        self.check_every = ce if ce is not None else (50 if str(d).startswith("cuda") else 1)
         dx_m = model.dx_mm * 1e-3
         self._dx = dx_m
         self._x_min = 1.0 * dx_m
@@ -240,7 +243,7 @@ class MPMSolver:
         wp.launch(kernels.g2p, m.n, [self.grid_v, state_in.x, state_in.F, self._dx, dt, self._x_min, self._x_max, self.step_count,
                                      state_out.x, state_out.v, state_out.C, state_out.F, self.status], device=d)
         self.step_count += 1
-        if m.config.check_every and self.step_count % m.config.check_every == 0:
+        if self.check_every and self.step_count % self.check_every == 0:
             self.check()
 
     def check(self) -> None:
