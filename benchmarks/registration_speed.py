@@ -3,7 +3,7 @@
 A phantom axial slice through the pancreas is resampled to 256 x 256 pixels (1.0 mm), moved by a
 known in-plane affine (2 deg rotation, 1.5 deg shear, scale 0.9, translation (5, -3) mm) and
 registered back. Prints median time per registration and the RMS error over the organ pixels, for
-each metric; the peer is the same registration at full sampling (sampling 1.0).
+each metric, at the default random sampling of 25 % of the organ-box pixels and at full sampling.
 
     python benchmarks/registration_speed.py
 """
@@ -43,7 +43,7 @@ def main():
     print("| metric | sampling | median ms | RMS error mm | iterations |")
     print("|---|---|---|---|---|")
     for metric in ("correlation", "meansquares", "mattes"):
-        for sampling in (0.5, 1.0):
+        for sampling in (0.25, 1.0):
             times, errs = [], []
             for rep in range(7):
                 t0 = time.perf_counter()
