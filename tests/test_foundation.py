@@ -121,3 +121,33 @@ def test_bad_inputs(tmp_path, tiny_case):
         parse_organs("px")
     with pytest.raises(InputError, match="sampling step"):
         build_model(tiny_case, "p", sampling_step=0)
+
+
+def test_dicom_series_folder(tmp_path):
+    """A DICOM series folder reads with its geometry (written here slice by slice with SimpleITK)."""
+    from warpmpm.images import read_volume
+
+    arr = (np.arange(4 * 5 * 6).reshape(4, 5, 6) % 7).astype(np.int16)
+    img = sitk.GetImageFromArray(arr)
+    img.SetSpacing((1.5, 1.5, 3.0))
+    img.SetOrigin((10.0, 20.0, 30.0))
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    uid = "1.2.826.0.1.3680043.2.1125.4242"
+    for k in range(arr.shape[0]):
+        s = img[:, :, k]
+        s.SetMetaData("0020|000e", uid)
+        s.SetMetaData("0020|0032", "\\".join(str(v) for v in img.TransformIndexToPhysicalPoint((0, 0, k))))
+        s.SetMetaData("0020|0013", str(k))
+        s.SetMetaData("0008|0060", "MR")
+        writer.SetFileName(str(tmp_path / f"{k}.dcm"))
+        writer.Execute(s)
+    vol = read_volume(tmp_path)
+    assert vol.GetSize() == (6, 5, 4)
+    np.testing.assert_allclose(vol.GetSpacing(), (1.5, 1.5, 3.0))
+    np.testing.assert_allclose(vol.GetOrigin(), (10.0, 20.0, 30.0))
+    assert np.array_equal(sitk.GetArrayFromImage(vol), arr)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no DICOM series"):
+        read_volume(empty)
