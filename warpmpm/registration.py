@@ -273,6 +273,20 @@ def organ_intensity_volume(labels: np.ndarray, label_values: dict[str, int], geo
     return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(img, sigma_mm))
 
 
+def planning_and_gt_volumes(case, gt) -> tuple[np.ndarray, np.ndarray]:
+    """The planning intensity volume and the same at the GT state (the image warped by the GT motion).
+
+    Without an image, both are smooth organ-intensity volumes drawn from the planning and GT label maps.
+    """
+    from .groundtruth import warp_image
+
+    if case.image is not None:
+        return case.image, warp_image(case, gt.model, gt.positions_mm)
+    values = {o: case.label_map[o] for o in gt.model.organs}
+    return (organ_intensity_volume(case.labels, values, case.geometry),
+            organ_intensity_volume(gt.label_map(values), values, case.geometry))
+
+
 # --------------------------------------------------------------------------------------------
 # The whole chain: capture the cine slice at the GT state, register, targets
 # --------------------------------------------------------------------------------------------
@@ -285,17 +299,11 @@ def registration_targets(prep, gt, model, slices, *, noise_sd: float = 0.0, in_p
     the mean in-plane distance between registered and true positions of the slices' pancreas particles.
     """
     from .driving import affine_targets
-    from .groundtruth import warp_image
 
     case = prep.case
     centre = prep.input_centre_mm
     values = {o: case.label_map[o] for o in gt.model.organs}
-    if case.image is not None:
-        planning = case.image
-        warped = warp_image(case, gt.model, gt.positions_mm)
-    else:
-        planning = organ_intensity_volume(case.labels, values, case.geometry)
-        warped = organ_intensity_volume(gt.label_map(values), values, case.geometry)
+    planning, warped = planning_and_gt_volumes(case, gt)
     affines, per_slice = [], []
     for s in slices:
         stored = extract_slice(planning, case.geometry, s.orientation, s.index, centre)

@@ -24,7 +24,7 @@ import numpy as np
 
 from .driving import (ConvergenceConfig, DriveConfig, DrivingSlice, SliceDrivenEstimator, affine_targets, apply_in_plane_affine,
                       driven_indices, in_plane_axes, parse_slices)
-from .groundtruth import GroundTruth, contact_ground_truth, fit_in_plane_affine, paper_affine, paper_ground_truth, warp_image
+from .groundtruth import GroundTruth, contact_ground_truth, fit_in_plane_affine, paper_affine, paper_ground_truth
 from .images import ORGANS, Case, InputError, crop_to_organs, load_case, organs_to_letters, parse_organs
 from .metrics import evaluate
 from .model import ParticleModel, build_model, orientation_image_axis
@@ -140,16 +140,11 @@ def _gt_for_model(gt: GroundTruth, model: ParticleModel) -> np.ndarray:
 
 
 def volume_registration_baseline(prep: PreparedCase, gt: GroundTruth, model: ParticleModel) -> tuple[np.ndarray, dict]:
-    from .registration import organ_intensity_volume, register_volumes_affine
+    from .registration import planning_and_gt_volumes, register_volumes_affine
 
     case = prep.case
     values = {o: case.label_map[o] for o in gt.model.organs}
-    if case.image is not None:
-        planning = case.image
-        target = warp_image(case, gt.model, gt.positions_mm)
-    else:
-        planning = organ_intensity_volume(case.labels, values, case.geometry)
-        target = organ_intensity_volume(gt.label_map(values), values, case.geometry)
+    planning, target = planning_and_gt_volumes(case, gt)
     # As the paper's elastix comparison: both volumes masked to the organs in use (planning contour
     # on the planning image, GT contour on the GT image), the metric over the dilated GT region.
     use = [values[o] for o in model.organs]
