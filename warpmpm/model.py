@@ -126,9 +126,9 @@ class ParticleModel:
     def slice_counts(self, orientation: str) -> np.ndarray:
         """(n_slices, n_organs) particle counts per slice of an orientation, organs in ``self.organs`` order."""
         axis = orientation_image_axis(self.geometry, orientation)
-        out = np.zeros((self.geometry.size[axis], len(self.organs)), dtype=np.int64)
-        np.add.at(out, (self.voxel_ijk[:, axis], self.organ_index), 1)
-        return out
+        n_org = len(self.organs)
+        flat = self.voxel_ijk[:, axis].astype(np.int64) * n_org + self.organ_index
+        return np.bincount(flat, minlength=self.geometry.size[axis] * n_org).reshape(-1, n_org)
 
     def subset(self, organs) -> "ParticleModel":
         """The model restricted to ``organs`` (a sub-combination)."""

@@ -130,9 +130,7 @@ class SelectionModel:
     features: tuple = FEATURES
 
     def predict(self, X: np.ndarray) -> np.ndarray:
-        import xgboost as xgb
-
-        return self.booster.predict(xgb.DMatrix(np.asarray(X, dtype=np.float32), feature_names=list(self.features)))
+        return self.booster.inplace_predict(np.asarray(X, dtype=np.float32))
 
     @property
     def lower_is_better(self) -> bool:
@@ -153,6 +151,7 @@ class SelectionModel:
             raise InputError(f"selection model {path} (and its .meta.json) not found; train one with examples/train_selection.py")
         booster = xgb.Booster()
         booster.load_model(path)
+        booster.set_param({"nthread": 1})  # ~100 candidate rows: threads cost more than they save
         with open(path + ".meta.json") as f:
             meta = json.load(f)
         return SelectionModel(booster, meta["target"], meta.get("params", {}), tuple(meta["features"]))
