@@ -69,6 +69,12 @@ def polar_rotation(F: wp.mat33):
 
 
 @wp.func
+def offset_in_stencil(x: wp.vec3, inv_dx: float, base: wp.vec3i):
+    """Particle position relative to its first stencil node, in cells (each component in [0.5, 1.5))."""
+    return wp.vec3(x[0] * inv_dx - float(base[0]), x[1] * inv_dx - float(base[1]), x[2] * inv_dx - float(base[2]))
+
+
+@wp.func
 def fixed_corotated_kirchhoff(F: wp.mat33, mu: float, lam: float):
     """Kirchhoff stress tau = P F^T of the fixed-corotated model (Pa)."""
     J = wp.determinant(F)
@@ -119,7 +125,7 @@ def p2g(
     inv_dx = 1.0 / dx
     xp = x[p]
     base = base_node(xp, inv_dx)
-    fx = wp.vec3(xp[0] * inv_dx - float(base[0]), xp[1] * inv_dx - float(base[1]), xp[2] * inv_dx - float(base[2]))
+    fx = offset_in_stencil(xp, inv_dx, base)
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
     wz = bspline_weights(fx, 2)
@@ -195,7 +201,7 @@ def g2p(
     inv_dx = 1.0 / dx
     xp = x_in[p]
     base = base_node(xp, inv_dx)
-    fx = wp.vec3(xp[0] * inv_dx - float(base[0]), xp[1] * inv_dx - float(base[1]), xp[2] * inv_dx - float(base[2]))
+    fx = offset_in_stencil(xp, inv_dx, base)
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
     wz = bspline_weights(fx, 2)
