@@ -199,7 +199,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, rrd=None)
         results["volume_registration"] = score(pos) | info
     logger = None
     if rrd is not None:
-        from viewer.logging import RunLogger
+        from viewer.recording import RunLogger
 
         logger = RunLogger(rrd, model, gt_pos=gt_pos, every=rrd_every(cfg))
         logger.log_planning()
