@@ -20,15 +20,13 @@ import argparse
 import os
 import sys
 import time
-from dataclasses import replace
-
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import warp as wp  # noqa: E402
 
-from warpmpm.driving import ConvergenceConfig, DrivingSlice, SliceDrivenEstimator, affine_targets  # noqa: E402
+from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator, affine_targets  # noqa: E402
 from warpmpm.groundtruth import paper_affine, paper_ground_truth  # noqa: E402
 from warpmpm.metrics import evaluate  # noqa: E402
 from warpmpm.runner import CaseConfig, prepare_case, resolve_slices  # noqa: E402
@@ -59,7 +57,7 @@ def sweep_knobs(a, device):
                for d in [int(x) for x in a.deformations.split(",")]}
         for ppc in [float(x) for x in a.ppc.split(",")]:
             for th_d in [int(x) for x in a.th_d.split(",")]:
-                errs, walls, steps, init, prop = [], [], [], [], []
+                errs, walls, steps, init = [], [], [], []
                 for d, gt in gts.items():
                     res, m, _ = frame(prep, gt, ("pancreas", "stomach", "duodenum", "left_kidney"), step, ppc, th_d, device)
                     errs.append(m["error_mm"])

@@ -15,7 +15,7 @@ from warpmpm.images import crop_to_organs
 from warpmpm.metrics import dice, evaluate, particle_errors_mm
 from warpmpm.model import build_model
 from warpmpm.registration import register_volumes_affine
-from warpmpm.runner import CaseConfig, main, run_case
+from warpmpm.runner import main
 from warpmpm.solver import SolverConfig
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))

@@ -1,7 +1,5 @@
 """Issue 3: the MPM solver's physics on small scenes (Warp CPU)."""
 
-import math
-
 import numpy as np
 import pytest
 

@@ -31,7 +31,7 @@ import warp as wp
 
 from .images import InputError
 from .model import ParticleModel, orientation_image_axis
-from .solver import MPMModel, MPMSolver, SolverConfig, State
+from .solver import MPMModel, MPMSolver, SolverConfig
 
 
 # --------------------------------------------------------------------------------------------
@@ -352,9 +352,10 @@ class SliceDrivenEstimator:
     def positions_mm(self) -> np.ndarray:
         return self.state.positions_mm()
 
-    def _steps_run(self, history: list) -> range:
+    def _steps_run(self, n_residuals: int) -> int:
+        """Steps actually run: whole batches of ``sync_every`` steps."""
         k = self.sync_every
-        return range(((len(history) + k - 1) // k) * k)
+        return -(-n_residuals // k) * k
 
     def driven_positions_mm(self) -> np.ndarray:
         return self.positions_mm()[self.driven]
@@ -417,7 +418,7 @@ class SliceDrivenEstimator:
         self._force.zero_()
         self.frames += 1
         # on a GPU the loop runs whole batches of sync_every steps: report the steps actually run
-        result = DriveResult(self.positions_mm(), len(self._steps_run(rel_hist)), wall, np.asarray(rel_hist), np.asarray(rms_hist),
+        result = DriveResult(self.positions_mm(), self._steps_run(len(rel_hist)), wall, np.asarray(rel_hist), np.asarray(rms_hist),
                              conv.converged, conv.reason, dict(g))
         if not result.converged:
             warnings.warn(f"estimate did not converge in {conv.steps} steps (relative residual {rel:.2e}, "

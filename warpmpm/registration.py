@@ -280,11 +280,17 @@ def planning_and_gt_volumes(case, gt) -> tuple[np.ndarray, np.ndarray]:
     """
     from .groundtruth import warp_image
 
+    cached = getattr(gt, "_volumes", None)  # the GT warp is the costly part; one per GT is enough
+    if cached is not None and cached[0] is case:
+        return cached[1]
     if case.image is not None:
-        return case.image, warp_image(case, gt.model, gt.positions_mm)
-    values = {o: case.label_map[o] for o in gt.model.organs}
-    return (organ_intensity_volume(case.labels, values, case.geometry),
-            organ_intensity_volume(gt.label_map(values), values, case.geometry))
+        pair = (case.image, warp_image(case, gt.model, gt.positions_mm))
+    else:
+        values = {o: case.label_map[o] for o in gt.model.organs}
+        pair = (organ_intensity_volume(case.labels, values, case.geometry),
+                organ_intensity_volume(gt.label_map(values), values, case.geometry))
+    gt._volumes = (case, pair)
+    return pair
 
 
 # --------------------------------------------------------------------------------------------

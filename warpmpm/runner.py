@@ -13,23 +13,22 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 import os
 import sys
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .driving import (ConvergenceConfig, DriveConfig, DrivingSlice, SliceDrivenEstimator, affine_targets, apply_in_plane_affine,
+from .driving import (ConvergenceConfig, DrivingSlice, SliceDrivenEstimator, affine_targets, apply_in_plane_affine,
                       driven_indices, in_plane_axes, parse_slices)
 from .groundtruth import GroundTruth, contact_ground_truth, fit_in_plane_affine, paper_affine, paper_ground_truth
-from .images import ORGANS, Case, InputError, crop_to_organs, load_case, organs_to_letters, parse_organs
+from .images import ORGANS, Case, InputError, crop_to_organs, load_case, parse_organs
 from .metrics import evaluate
 from .model import ParticleModel, build_model, orientation_image_axis
 from .phantom import make_phantom
-from .solver import SimulationError, SolverConfig, default_device
+from .solver import SimulationError, SolverConfig
 
 COMBINATIONS = ("p", "ps", "pd", "pl", "psd", "psl", "pdl", "psdl")
 
@@ -58,6 +57,7 @@ class CaseConfig:
     max_steps: int = 6000
     baselines: tuple[str, ...] = ("initial", "propagate", "volume_registration")
     exclude_driven: bool | None = None
+    rrd_every: int = 20
     solver: SolverConfig = field(default_factory=SolverConfig)
 
 
@@ -98,7 +98,7 @@ def resolve_slices(prep: PreparedCase, model: ParticleModel, text: str | None) -
     out = []
     for s in parse_slices(text):
         axis = orientation_image_axis(model.geometry, s.orientation)
-        size_in = prep.case.geometry.size[axis] + 0  # cropped size, for the message below
+        size_in = prep.case.geometry.size[axis]  # cropped size
         local = s.index - prep.offset[axis]
         if not (0 <= s.index < prep.input_size[axis]):
             raise InputError(f"{s.orientation} slice {s.index} is outside the volume (valid 0..{prep.input_size[axis] - 1})")
@@ -201,7 +201,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, rrd=None)
     if rrd is not None:
         from viewer.recording import RunLogger
 
-        logger = RunLogger(rrd, model, gt_pos=gt_pos, every=rrd_every(cfg))
+        logger = RunLogger(rrd, model, gt_pos=gt_pos, every=cfg.rrd_every)
         logger.log_planning()
         logger.log_slices(slices, idx, targets, prep)
     est = SliceDrivenEstimator(model, slices, driven=idx, solver_config=replace(cfg.solver, device=cfg.device),
@@ -236,10 +236,6 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, rrd=None)
         logger.close()
     out["_positions"] = res.positions_mm
     return out
-
-
-def rrd_every(cfg: CaseConfig) -> int:
-    return 20
 
 
 def run_case(cfg: CaseConfig, rrd: str | None = None) -> dict:
@@ -488,6 +484,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=6000)
     p.add_argument("--no-volume-registration", action="store_true", help="skip the (slow) 3D registration baseline")
     p.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
+    p.add_argument("--rrd-every", type=int, default=20, help="log particle positions every this many steps (scalars every step)")
     p.add_argument("--json", help="write the results as JSON to this file")
     return p
 
@@ -511,7 +508,7 @@ def config_from_args(a) -> CaseConfig:
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
                       organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets,
                       device=a.device, particle_step=step, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps,
-                      baselines=baselines)
+                      baselines=baselines, rrd_every=a.rrd_every)
 
 
 def main(argv=None) -> int:

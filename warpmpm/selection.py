@@ -13,7 +13,6 @@ shared. The model saves as XGBoost JSON plus a small JSON of its feature definit
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from dataclasses import dataclass, field
