@@ -159,3 +159,15 @@ def test_gt_label_map_at_rest_is_the_planning_map_for_sampled_models(tiny_case):
         lab = gt.label_map(tiny_case.label_map)
         planning = np.where(np.isin(tiny_case.labels, list(tiny_case.label_map.values())), tiny_case.labels, 0)
         assert dice(lab > 0, planning > 0) > (0.999 if step == 1 else 0.9)
+
+
+def test_empty_slice_refused_before_any_simulation(tmp_path, capsys, monkeypatch):
+    import warpmpm.runner as runner
+
+    def no_gt(*a, **k):
+        raise AssertionError("the ground truth was simulated before the slice was checked")
+
+    monkeypatch.setattr(runner, "make_ground_truth", no_gt)
+    code = main(["--phantom-resolution", "3", "--device", "cpu", "--slices", "axial:0", "--json", str(tmp_path / "r.json")])
+    assert code == 2 and "holds no particle" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())

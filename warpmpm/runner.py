@@ -251,7 +251,9 @@ def run_case(cfg: CaseConfig, rrd: str | None = None) -> dict:
     t0 = time.perf_counter()
     prep = prepare_case(cfg)
     if cfg.slices not in (None, "", "auto"):
-        resolve_slices(prep, prep.full_model.subset(parse_organs(cfg.organs)), cfg.slices)  # fail before the GT
+        # every slice must be inside the volume and hold particles: fail before the (costly) GT
+        model = prep.full_model.subset(parse_organs(cfg.organs))
+        driven_indices(model, resolve_slices(prep, model, cfg.slices))
     if cfg.targets not in ("affine", "gt", "registration"):
         raise InputError(f"unknown targets {cfg.targets!r}; use affine, gt or registration")
     if cfg.protocol == "paper" and cfg.deformation not in range(1, 9):
