@@ -1,5 +1,8 @@
 """``python -m viewer RUN.rrd`` opens a recording in the Rerun viewer;
-``python -m viewer --summary RUN.rrd`` prints its entities, timelines and counts without a display."""
+``python -m viewer --summary RUN.rrd`` prints its entities, timelines and counts without a display;
+``python -m viewer --screenshot OUT.png RUN.rrd`` saves a picture of the viewer showing the recording
+(on a headless machine it starts a virtual screen with ``Xvfb`` and software Vulkan, e.g. Debian's
+``xvfb`` and ``mesa-vulkan-drivers``)."""
 
 from __future__ import annotations
 
@@ -34,10 +37,59 @@ def summarize(path: str) -> dict:
     return out
 
 
+def _free_display() -> int:
+    n = 90
+    while os.path.exists(f"/tmp/.X11-unix/X{n}") or os.path.exists(f"/tmp/.X{n}-lock"):
+        n += 1
+    return n
+
+
+def screenshot(path: str, out_png: str, size: tuple[int, int] = (1600, 900), timeout_s: float = 300) -> None:
+    """Open ``path`` in the native Rerun viewer and save a screenshot to ``out_png``.
+
+    Uses the current ``DISPLAY``; without one, starts ``Xvfb`` on a free display for the duration
+    (the virtual screen is larger than the window so the pointer does not hover over it). Rerun's
+    GL backend lacks a texture format on Mesa's software renderer, so Vulkan is asked for there.
+    Raises RuntimeError with the viewer's message when no picture was written.
+    """
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"recording not found: {path}")
+    exe = shutil.which("rerun") or os.path.join(os.path.dirname(sys.executable), "rerun")
+    env = dict(os.environ)
+    xvfb = None
+    if not env.get("DISPLAY"):
+        if not shutil.which("Xvfb"):
+            raise RuntimeError("no DISPLAY and no Xvfb to make one: install Xvfb (Debian: xvfb, mesa-vulkan-drivers) or run with a display")
+        n = _free_display()
+        xvfb = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", f"{4 * size[0]}x{4 * size[1]}x24"],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        env["DISPLAY"] = f":{n}"
+        env.setdefault("WGPU_BACKEND", "vulkan")
+        env.setdefault("XDG_RUNTIME_DIR", "/tmp")
+        import time
+
+        time.sleep(1.0)
+    tmp = out_png + ".part.png"
+    try:
+        proc = subprocess.run([exe, path, "--port", "auto", "--window-size", f"{size[0]}x{size[1]}", "--screenshot-to", tmp],
+                              env=env, capture_output=True, text=True, timeout=timeout_s)
+        if proc.returncode != 0 or not os.path.exists(tmp):
+            lines = [ln for ln in (proc.stderr + proc.stdout).splitlines() if "rror" in ln]
+            raise RuntimeError("the Rerun viewer wrote no screenshot: " + (lines[-1] if lines else f"exit code {proc.returncode}"))
+        os.replace(tmp, out_png)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        if xvfb is not None:
+            xvfb.terminate()
+            xvfb.wait()
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m viewer", description=__doc__)
     p.add_argument("rrd")
     p.add_argument("--summary", action="store_true", help="print entities, timelines and counts (no display needed)")
+    p.add_argument("--screenshot", metavar="PNG", help="save a picture of the viewer showing the recording (Xvfb when no display)")
     a = p.parse_args(argv)
     if not os.path.exists(a.rrd):
         print(f"error: recording not found: {a.rrd}", file=sys.stderr)
@@ -48,6 +100,14 @@ def main(argv=None) -> int:
             steps = f", steps {min(e['steps'])}..{max(e['steps'])}" if e["steps"] else ""
             tl = ",".join(sorted(e["timelines"])) or "static"
             print(f"{ent}: {e['rows']} rows [{tl}]{pts}{steps}")
+        return 0
+    if a.screenshot:
+        try:
+            screenshot(a.rrd, a.screenshot)
+        except RuntimeError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+        print(f"wrote {a.screenshot}")
         return 0
     exe = shutil.which("rerun") or os.path.join(os.path.dirname(sys.executable), "rerun")
     return subprocess.call([exe, a.rrd])

@@ -10,6 +10,10 @@ Entities (all positions in mm, world coordinates):
   ``.../targets``: arrows from each driven particle to its target.
 - ``metrics/rel_residual``, ``metrics/rms_residual_mm``, ``metrics/pancreas_error_mm``: scalars per step.
 - ``run/params``: the run's parameters and final table (Markdown).
+
+The recording carries a default layout (a Rerun blueprint, :func:`default_blueprint`): the organs in
+3D with the driving slices and targets, the pancreas error field beside the GT, the slice image, the
+residual and error curves and the run's table; the time panel follows the newest step.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import json
 import numpy as np
 import rerun as rr
 
-ORGAN_COLOURS = {"pancreas": (235, 170, 40), "stomach": (90, 160, 230), "duodenum": (120, 200, 110), "left_kidney": (200, 80, 90)}
+ORGAN_COLOURS = {"pancreas": (235, 170, 40), "stomach": (90, 160, 230), "duodenum": (120, 200, 110), "left_kidney": (170, 100, 220)}
 
 # 5-stop perceptual scale (dark blue -> teal -> green -> yellow), like viridis.
 _STOPS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], dtype=np.float64)
@@ -33,32 +37,97 @@ def error_colours(err_mm: np.ndarray, vmax_mm: float) -> np.ndarray:
     return ((1 - f) * _STOPS[i] + f * _STOPS[i + 1]).astype(np.uint8)
 
 
+GT_COLOUR = (235, 235, 235, 90)
+
+
+def default_blueprint(slice_names: list[str] | None = None, centre_mm=None, extent_mm: float | None = None):
+    """The layout a recording opens with (users can still rearrange it in the viewer).
+
+    ``centre_mm``, ``extent_mm``: the scene's centre and size, to place the 3D cameras looking at it
+    from the patient's right, slightly posterior and superior with superior (+z, LPS) up.
+    """
+    import rerun.blueprint as rrb
+
+    slice_names = slice_names or []
+    eye = None
+    if centre_mm is not None and extent_mm:
+        d = np.array([-1.0, 0.35, 0.6])
+        c = np.asarray(centre_mm, dtype=float)
+        eye = rrb.EyeControls3D(position=c + 1.6 * extent_mm * d / np.linalg.norm(d), look_target=c, eye_up=(0.0, 0.0, 1.0))
+    side = [rrb.Spatial3DView(name="pancreas error (mm) vs GT (grey)", origin="/", contents=["+ /error/**", "+ /gt/pancreas"])]
+    side += [rrb.Spatial2DView(name=f"driving slice {n}", origin=f"/slices/{n}/image") for n in slice_names[:2]]
+    side += [rrb.TimeSeriesView(name="residual and error", origin="/metrics")]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(name="estimate, driving slices and targets", origin="/",
+                              contents=["+ /estimate/**"] + [f"+ /slices/{n}/{part}" for n in slice_names for part in ("plane", "targets")],
+                              eye_controls=eye),
+            rrb.Vertical(*side),
+            rrb.Vertical(rrb.TextDocumentView(name="run", origin="/run/params"), rrb.TextDocumentView(name="colour scale", origin="/error/scale"),
+                         row_shares=[4, 1]),
+            column_shares=[5, 4, 3],
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline="step", play_state="following", state="collapsed"),
+    )
+
+
+def optimize_recording(path: str) -> bool:
+    """Compact ``path`` in place with ``rerun rrd optimize``; False (file untouched) when it fails."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import warnings
+
+    exe = shutil.which("rerun") or os.path.join(os.path.dirname(sys.executable), "rerun")
+    tmp = path + ".optimizing"
+    try:
+        with open(tmp, "wb") as f:
+            proc = subprocess.run([exe, "rrd", "optimize", path], stdout=f, stderr=subprocess.PIPE, timeout=600)
+        if proc.returncode == 0 and os.path.getsize(tmp) > 0:
+            os.replace(tmp, path)
+            return True
+        warnings.warn(f"rerun rrd optimize failed ({proc.stderr.decode(errors='replace').strip()[-200:]}); recording left as written")
+    except (OSError, subprocess.SubprocessError) as e:
+        warnings.warn(f"could not compact the recording with rerun rrd optimize: {e}")
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return False
+
+
 class RunLogger:
     """Writes one run to ``path``. ``every``: log positions every this many steps (scalars every step)."""
 
     def __init__(self, path: str, model, gt_pos: np.ndarray | None = None, every: int = 20, application: str = "warpmpm"):
         self.rec = rr.RecordingStream(application)
         self.rec.save(path)
+        self.path = path
         self.model = model
         self.gt_pos = gt_pos
         self.every = max(1, int(every))
         self.frame = 0
         self.pancreas = model.organ_slice("pancreas")
 
-    def _points(self, prefix: str, positions: np.ndarray, static: bool = False) -> None:
+    def _points(self, prefix: str, positions: np.ndarray, static: bool = False, colour=None, radius: float = 0.6) -> None:
         for n, organ in enumerate(self.model.organs):
             sel = self.model.organ_index == n
-            self.rec.log(f"{prefix}/{organ}", rr.Points3D(positions[sel], colors=ORGAN_COLOURS.get(organ, (200, 200, 200)), radii=0.6),
-                         static=static)
+            c = colour or ORGAN_COLOURS.get(organ, (200, 200, 200))
+            self.rec.log(f"{prefix}/{organ}", rr.Points3D(positions[sel], colors=c, radii=radius), static=static)
 
     def log_planning(self) -> None:
         self._points("planning", self.model.positions_mm, static=True)
         if self.gt_pos is not None:
-            self._points("gt", self.gt_pos, static=True)
+            self._points("gt", self.gt_pos, static=True, colour=GT_COLOUR, radius=0.4)
 
     def log_slices(self, slices, driven: np.ndarray, targets: np.ndarray, prep=None) -> None:
         from warpmpm.driving import driven_indices, in_plane_axes
 
+        pos = self.model.positions_mm
+        self.rec.send_blueprint(default_blueprint([f"{s.orientation}_{s.index}" for s in slices], pos.mean(0),
+                                                  float(np.ptp(pos, axis=0).max())))
         for s in slices:
             name = f"slices/{s.orientation}_{s.index}"
             on = driven_indices(self.model, [s])
@@ -67,11 +136,12 @@ class RunLogger:
             normal = np.cross(e_u, e_v)
             centre = pts.mean(0)
             half = np.abs(e_u) * np.ptp(pts @ e_u) / 2 + np.abs(e_v) * np.ptp(pts @ e_v) / 2 + np.abs(normal) * 0.5 + 5.0 * (np.abs(e_u) + np.abs(e_v))
-            self.rec.log(f"{name}/plane", rr.Boxes3D(centers=[centre], half_sizes=[half], colors=[(255, 255, 255)]), static=True)
+            self.rec.log(f"{name}/plane", rr.Boxes3D(centers=[centre], half_sizes=[half], colors=[(255, 255, 255, 60)],
+                                                      fill_mode="transparentfillmajorwireframe", radii=0.3), static=True)
             sel = np.isin(driven, on)
             self.rec.log(f"{name}/targets", rr.Arrows3D(origins=self.model.positions_mm[driven[sel]],
                                                          vectors=targets[sel] - self.model.positions_mm[driven[sel]],
-                                                         colors=(255, 60, 60)), static=True)
+                                                         colors=(255, 255, 255), radii=0.15), static=True)
             if prep is not None and prep.case.image is not None:
                 from warpmpm.registration import extract_slice
                 import SimpleITK as sitk
@@ -113,5 +183,9 @@ class RunLogger:
         self.frame += 1
 
     def close(self) -> None:
+        """Finish the file and compact its chunks (``rerun rrd optimize``): the SDK writes a few steps
+        per chunk, and a viewer opening the raw file shows the newest step before all of them have
+        loaded (seen in Rerun 0.41: organs missing from the 3D view); the compacted file opens whole."""
         self.rec.flush()
         self.rec.disconnect()
+        optimize_recording(self.path)
