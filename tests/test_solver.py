@@ -51,8 +51,9 @@ def test_momentum_conserved_and_uniform_velocity_translates_rigidly():
     a.v.assign(np.tile(u, (pm.n, 1)))
     a = run(s, a, b, 100)
     d = a.positions_mm() - pm.positions_mm
-    np.testing.assert_allclose(d.mean(0), u * 100 * m.dt_s * 1e3, rtol=1e-3)
-    assert d.std(0).max() < 1e-5
+    # positions are float32 metres from the grid origin (~0.1 m): each step rounds by up to ~4e-6 mm
+    np.testing.assert_allclose(d.mean(0), u * 100 * m.dt_s * 1e3, rtol=1e-3, atol=5e-4)
+    assert d.std(0).max() < 1e-3  # 1 micrometre: the float32 rounding above, different per particle
     assert np.abs(a.F.numpy() - np.eye(3)).max() < 1e-5
 
 

@@ -72,7 +72,7 @@ def screenshot(path: str, out_png: str, size: tuple[int, int] = (1600, 900), tim
     tmp = out_png + ".part.png"
     try:
         proc = subprocess.run([exe, path, "--port", "auto", "--window-size", f"{size[0]}x{size[1]}", "--screenshot-to", tmp],
-                              env=env, capture_output=True, text=True, timeout=timeout_s)
+                              env=env, capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=timeout_s)
         if proc.returncode != 0 or not os.path.exists(tmp):
             lines = [ln for ln in (proc.stderr + proc.stdout).splitlines() if "rror" in ln]
             raise RuntimeError("the Rerun viewer wrote no screenshot: " + (lines[-1] if lines else f"exit code {proc.returncode}"))

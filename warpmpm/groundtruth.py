@@ -17,7 +17,7 @@ estimator uses the nominal table.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import SimpleITK as sitk
@@ -104,8 +104,9 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
     gt_model = ParticleModel(model.positions_mm, model.organ_index, model.organs, model.voxel_ijk, model.volume_mm3, mats,
                              model.geometry, model.sampling_step, dict(model.meta))
     cfg = _gt_solver_config(solver_config, device)
+    # the truth is held to the paper's stricter stopping rule (TH_D = 4), not the estimator's default
     est = SliceDrivenEstimator(gt_model, driven=driven, solver_config=cfg, drive_config=DriveConfig(),
-                               convergence=ConvergenceConfig(max_steps=max_steps), extra_points_mm=targets_mm)
+                               convergence=replace(ConvergenceConfig.paper(), max_steps=max_steps), extra_points_mm=targets_mm)
     res = est.estimate(targets_mm)
     params["solver"] = est.mpm.summary()
     params["gt_steps"] = res.steps
