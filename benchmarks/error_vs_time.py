@@ -33,14 +33,20 @@ from warpmpm.runner import CaseConfig, prepare_case, resolve_slices  # noqa: E40
 from warpmpm.solver import SolverConfig  # noqa: E402
 
 
-def frame(prep, gt, organs, step, ppc, th_d, device):
+# The settings before issue 9's tuning (CFL 0.3, damping factor 1, the paper's TH_D 4): kept as a
+# row of every sweep, the peer the new defaults are compared with in the same run.
+LEGACY = {"cfl": 0.3, "damping_factor": 1.0}
+
+
+def frame(prep, gt, organs, step, ppc, th_d, device, legacy=False):
     model = prep.full_model.subset(organs)
     keep = np.isin(gt.model.organ_index, [gt.model.organs.index(o) for o in model.organs])
     gt_pos = gt.positions_mm[keep]
     sl = resolve_slices(prep, model, None)
     A = paper_affine(gt.params["deformation"])
     idx, tg = affine_targets(model, model.positions_mm, sl, [(A, np.zeros(2))], prep.input_centre_mm)
-    est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(particles_per_cell=ppc, device=device),
+    extra = LEGACY if legacy else {}
+    est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(particles_per_cell=ppc, device=device, **extra),
                                convergence=ConvergenceConfig(th_d=th_d), extra_points_mm=np.vstack([tg, gt_pos]))
     res = est.estimate(tg)
     pan = model.organ_slice("pancreas")
@@ -55,21 +61,23 @@ def sweep_knobs(a, device):
         prep = prepare_case(base)
         gts = {d: paper_ground_truth(prep.full_model, d, centre_mm=prep.input_centre_mm, device=device)
                for d in [int(x) for x in a.deformations.split(",")]}
-        for ppc in [float(x) for x in a.ppc.split(",")]:
-            for th_d in [int(x) for x in a.th_d.split(",")]:
-                errs, walls, steps, init = [], [], [], []
-                for d, gt in gts.items():
-                    res, m, _ = frame(prep, gt, ("pancreas", "stomach", "duodenum", "left_kidney"), step, ppc, th_d, device)
-                    errs.append(m["error_mm"])
-                    walls.append(res.wall_s)
-                    steps.append(res.steps)
-                    pan = gt.model.organ_slice("pancreas")
-                    init.append(np.linalg.norm(gt.positions_mm[pan] - gt.model.positions_mm[pan], axis=1).mean())
-                rows.append({"step": step, "ppc": ppc, "th_d": th_d, "n": prep.full_model.n, "error": np.mean(errs),
-                             "wall": np.median(walls), "steps": np.median(steps), "initial": np.mean(init)})
-                r = rows[-1]
-                print(f"  step {step} ppc {ppc} TH_D {th_d}: {r['n']} particles, error {r['error']:.2f} mm, "
-                      f"{r['wall']:.2f} s/frame, {r['steps']:.0f} steps", flush=True)
+        knobs = [(float(ppc), int(th_d), False) for ppc in a.ppc.split(",") for th_d in a.th_d.split(",")]
+        if not a.no_legacy:
+            knobs.append((4.0, 4, True))
+        for ppc, th_d, legacy in knobs:
+            errs, walls, steps, init = [], [], [], []
+            for d, gt in gts.items():
+                res, m, _ = frame(prep, gt, ("pancreas", "stomach", "duodenum", "left_kidney"), step, ppc, th_d, device, legacy)
+                errs.append(m["error_mm"])
+                walls.append(res.wall_s)
+                steps.append(res.steps)
+                pan = gt.model.organ_slice("pancreas")
+                init.append(np.linalg.norm(gt.positions_mm[pan] - gt.model.positions_mm[pan], axis=1).mean())
+            rows.append({"step": step, "ppc": ppc, "th_d": th_d, "legacy": legacy, "n": prep.full_model.n, "error": np.mean(errs),
+                         "wall": np.median(walls), "steps": np.median(steps), "initial": np.mean(init)})
+            r = rows[-1]
+            print(f"  step {step} ppc {ppc} TH_D {th_d}{' (before tuning)' if legacy else ''}: {r['n']} particles, error {r['error']:.2f} mm, "
+                  f"{r['wall']:.2f} s/frame, {r['steps']:.0f} steps", flush=True)
     return rows
 
 
@@ -124,6 +132,7 @@ def main(argv=None):
     p.add_argument("--steps", default="2,3", help="particle sampling steps")
     p.add_argument("--ppc", default="4,8", help="particles per cell")
     p.add_argument("--th-d", default="3,4", help="TH_D values")
+    p.add_argument("--no-legacy", action="store_true", help="leave out the row with the settings before tuning")
     p.add_argument("--device", default=None)
     p.add_argument("--stream", type=int, default=0)
     p.add_argument("--out", default="benchmarks/error_vs_time.png")
@@ -137,13 +146,14 @@ def main(argv=None):
         return
     rows = sweep_knobs(a, device)
     front = pareto(rows)
-    print("\n| particle step | ppc | TH_D | particles | mean error mm | s per frame | steps | Pareto |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("\n| particle step | ppc | TH_D | damping, CFL | particles | mean error mm | s per frame | steps | Pareto |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['step']} | {r['ppc']:g} | {r['th_d']} | {r['n']} | {r['error']:.2f} | {r['wall']:.2f} | {r['steps']:.0f} | "
+        solver = "1x, 0.3 (before tuning)" if r["legacy"] else "4x, 0.5"
+        print(f"| {r['step']} | {r['ppc']:g} | {r['th_d']} | {solver} | {r['n']} | {r['error']:.2f} | {r['wall']:.2f} | {r['steps']:.0f} | "
               f"{'yes' if r in front else ''} |")
-    print(f"| initial (no estimation) | | | | {np.mean([r['initial'] for r in rows]):.2f} | | | |")
-    print("| paper, psdl best slice (AMOS, 96-core CPU) | | | | 5.11 | 2587 | | |")
+    print(f"| initial (no estimation) | | | | | {np.mean([r['initial'] for r in rows]):.2f} | | | |")
+    print("| paper, psdl best slice (AMOS, 96-core CPU) | | | | | 5.11 | 2587 | | |")
     try:
         import matplotlib
 
@@ -153,7 +163,7 @@ def main(argv=None):
         fig, ax = plt.subplots(figsize=(6, 4))
         ax.scatter([r["wall"] for r in rows], [r["error"] for r in rows], label=f"warpmpm ({device})")
         for r in rows:
-            ax.annotate(f"s{r['step']} ppc{r['ppc']:g} D{r['th_d']}", (r["wall"], r["error"]), fontsize=7)
+            ax.annotate(f"s{r['step']} ppc{r['ppc']:g} D{r['th_d']}" + (" old" if r["legacy"] else ""), (r["wall"], r["error"]), fontsize=7)
         ax.scatter([2587], [5.11], marker="x", color="k", label="paper (CPU)")
         ax.axhline(np.mean([r["initial"] for r in rows]), ls="--", color="grey", label="initial")
         ax.set_xscale("log")
