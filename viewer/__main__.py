@@ -12,6 +12,8 @@ import shutil
 import subprocess
 import sys
 
+from viewer.recording import rerun_executable
+
 
 def summarize(path: str) -> dict:
     """Entities of a recording with their row counts, timelines, point counts and step range,
@@ -54,7 +56,7 @@ def screenshot(path: str, out_png: str, size: tuple[int, int] = (1600, 900), tim
     """
     if not os.path.exists(path):
         raise FileNotFoundError(f"recording not found: {path}")
-    exe = shutil.which("rerun") or os.path.join(os.path.dirname(sys.executable), "rerun")
+    exe = rerun_executable()
     env = dict(os.environ)
     xvfb = None
     if not env.get("DISPLAY"):
@@ -109,7 +111,7 @@ def main(argv=None) -> int:
             return 1
         print(f"wrote {a.screenshot}")
         return 0
-    exe = shutil.which("rerun") or os.path.join(os.path.dirname(sys.executable), "rerun")
+    exe = rerun_executable()
     return subprocess.call([exe, a.rrd])
 
 

@@ -73,15 +73,22 @@ def default_blueprint(slice_names: list[str] | None = None, centre_mm=None, exte
     )
 
 
+def rerun_executable() -> str:
+    """The ``rerun`` command of this environment (on PATH, else beside the running Python)."""
+    import os
+    import shutil
+    import sys
+
+    return shutil.which("rerun") or os.path.join(os.path.dirname(sys.executable), "rerun")
+
+
 def optimize_recording(path: str) -> bool:
     """Compact ``path`` in place with ``rerun rrd optimize``; False (file untouched) when it fails."""
     import os
-    import shutil
     import subprocess
-    import sys
     import warnings
 
-    exe = shutil.which("rerun") or os.path.join(os.path.dirname(sys.executable), "rerun")
+    exe = rerun_executable()
     tmp = path + ".optimizing"
     try:
         with open(tmp, "wb") as f:

@@ -162,7 +162,6 @@ class ConvergenceConfig:
     max_steps: int = 6000
     min_steps: int = 0
 
-
     @classmethod
     def paper(cls) -> "ConvergenceConfig":
         """The paper's stopping rule (TH_V 0.0015, TH_S 100, TH_D 4)."""
@@ -366,11 +365,11 @@ class SliceDrivenEstimator:
         # run does not synchronise with the host every step (every step on the CPU, where it is free)
         cuda = str(d).startswith("cuda")
         self.use_graph = cuda if use_graph is None else bool(use_graph)
+        if sync_every is not None and int(sync_every) < 1:
+            raise InputError(f"sync_every must be >= 1, got {sync_every}")
         k = (50 if cuda else 1) if sync_every is None else int(sync_every)
         if self.use_graph:
             k = max(2, k + (k % 2))  # the captured batch swaps the two states k times: k even ends where it began
-        if k < 1:
-            raise InputError(f"sync_every must be >= 1, got {sync_every}")
         self.sync_every = k
         self._sums = wp.zeros((self.sync_every, 2), dtype=float, device=d)
         self._graph = None
