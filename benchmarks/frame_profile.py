@@ -51,11 +51,12 @@ def main(argv=None):
     p.add_argument("--particle-step", type=int, default=2)
     p.add_argument("--deformation", type=int, default=1)
     p.add_argument("--device", default=None)
+    p.add_argument("--phantom-resolution", type=float, default=1.0, help="phantom voxel size factor (3: the selection sweep's)")
     a = p.parse_args(argv)
     wp.config.quiet = True
     wp.init()
     device = a.device or ("cuda" if wp.is_cuda_available() else "cpu")
-    prep = prepare_case(CaseConfig(particle_step=a.particle_step, device=device))
+    prep = prepare_case(CaseConfig(particle_step=a.particle_step, device=device, phantom_resolution=a.phantom_resolution))
     model = prep.full_model
     sl = resolve_slices(prep, model, None)
     _, tg = affine_targets(model, model.positions_mm, sl, [(paper_affine(a.deformation), np.zeros(2))], prep.input_centre_mm)

@@ -30,6 +30,8 @@ def main(argv=None):
     p.add_argument("--orientations", default="axial")
     p.add_argument("--protocol", default="paper", choices=["paper", "contact"])
     p.add_argument("--targets", default="affine", choices=["affine", "gt", "registration"])
+    p.add_argument("--exclude-driven", action="store_true",
+                   help="leave the driven particles out of the metrics (the multi-direction protocol's rule; default: only with several slices)")
     p.add_argument("--slice-stride", type=int, default=1)
     p.add_argument("--max-steps", type=int, default=6000, help="steps per estimate before it is reported not converged")
     p.add_argument("--device", default=None)
@@ -46,7 +48,8 @@ def main(argv=None):
                      for s in a.phantom_seeds.split(",")]
         combos = COMBINATIONS if a.organs == "all" else tuple(a.organs.split(","))
         os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
-        base = CaseConfig(particle_step=a.particle_step, device=a.device, targets=a.targets, max_steps=a.max_steps)
+        base = CaseConfig(particle_step=a.particle_step, device=a.device, targets=a.targets, max_steps=a.max_steps,
+                          exclude_driven=True if a.exclude_driven else None)
         rows = sweep(cases, [int(d) for d in a.deformations.split(",")], combos, tuple(a.orientations.split(",")), a.out,
                      protocol=a.protocol, slice_stride=a.slice_stride, base=base, scheduler=a.scheduler, workers=a.workers)
     except InputError as exc:

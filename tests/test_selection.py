@@ -83,3 +83,114 @@ def test_dask_sweep_matches_local_pool(tmp_path):
     assert len(again) == len(local)
     with open(tmp_path / "a.csv") as f:
         assert len(list(csv.DictReader(f))) == len(local)
+
+
+def test_percentile_rank_known_values():
+    from warpmpm.selection import percentile_rank
+
+    np.testing.assert_allclose(percentile_rank(np.array([0.3, 0.9, 0.1, 0.5])), [1 / 3, 1.0, 0.0, 2 / 3])
+    np.testing.assert_allclose(percentile_rank(np.array([0.2, 0.2, 0.8])), [0.25, 0.25, 1.0])  # ties share the mean rank
+
+
+def synthetic_plane_table(n_cases=10, seed=1):
+    """Sagittal/coronal psdl rows whose Dice rises with the pancreas count and falls with the stomach's."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for c in range(n_cases):
+        for orientation in ("sagittal", "coronal"):
+            for k in range(25):
+                counts = {o: int(rng.integers(0, 300)) for o in ("pancreas", "stomach", "duodenum", "left_kidney")}
+                counts["pancreas"] += 1
+                dice = 0.5 + 4e-4 * counts["pancreas"] - 2e-4 * counts["stomach"] + rng.normal(0, 0.003)
+                for d in (1, 2):
+                    rows.append({"case": f"c{c}", "orientation": orientation, "slice": k, "organs": "psdl", "deformation": d,
+                                 "dice": dice, **{f"count_{o}": v for o, v in counts.items()}})
+    return rows
+
+
+def test_plane_ranker_learns_dice_rank_within_case(tmp_path):
+    from warpmpm.selection import COUNT_FEATURES
+
+    table = TrainingTable.from_sweep(synthetic_plane_table(), "dice_rank")
+    assert table.features == COUNT_FEATURES and table.X.shape[1] == 4
+    for g in np.unique(table.groups):  # the target is a rank within each (case, orientation)
+        y = np.sort(table.y[table.groups == g])
+        assert y[0] == 0.0 and y[-1] == 1.0
+    model, rep = tune_and_train(table, split="case", patience=5, max_trials=12)
+    assert rep["test_r2"] > 0.9 and not model.lower_is_better
+    top1 = regret(table, model, model.test_mask, top=1)
+    top3 = regret(table, model, model.test_mask, top=3)
+    assert all("|" in k for k in top1)  # one group per case and orientation
+    assert all(0 <= top3[k] <= top1[k] for k in top1)  # the best of three is never worse than the first
+    assert np.mean(list(top1.values())) < 0.05  # within 0.05 Dice of the brute-force best slice
+    path = str(tmp_path / "planes.json")
+    model.save(path)
+    back = SelectionModel.load(path)
+    assert back.features == COUNT_FEATURES and back.orientations == ("coronal", "sagittal") and back.combinations == ("psdl",)
+
+
+def test_partial_cases_are_dropped():
+    rows = [r for r in synthetic_plane_table(3) if not (r["case"] == "c1" and r["deformation"] == 2 and r["slice"] == 3)]
+    table = TrainingTable.from_sweep(rows, "dice")
+    assert set(table.cases) == {"c0", "c2"}
+    assert len(set(TrainingTable.from_sweep(rows, "dice", complete_only=False).cases)) == 3
+
+
+def test_multi_direction_protocol_on_tiny_phantom(tmp_path, tiny_case):
+    """One (case, deformation) of the multi-direction protocol, with models trained on synthetic tables:
+    more GT-driven directions must not make the estimate worse, and the driven particles are left out."""
+    from warpmpm.runner import MULTI_CONDITIONS, multi_direction_task, summarize_multi
+
+    ax, _ = tune_and_train(TrainingTable.from_sweep(synthetic_table(4)), split="row", patience=2, max_trials=3)
+    pl, _ = tune_and_train(TrainingTable.from_sweep(synthetic_plane_table(4), "dice_rank"), split="row", patience=2, max_trials=3)
+    ax.save(str(tmp_path / "ax.json"))
+    pl.save(str(tmp_path / "pl.json"))
+    rows = multi_direction_task({"name": "tiny", "phantom_seed": 0, "phantom_resolution": 3.0}, 1, str(tmp_path / "ax.json"),
+                                str(tmp_path / "pl.json"), CaseConfig(device="cpu", max_steps=1500), top=1)
+    by = {r["condition"]: r for r in rows if r["pick"] == "top1"}
+    assert set(by) == set(MULTI_CONDITIONS)
+    assert [len(by[c]["slices"].split(",")) for c in MULTI_CONDITIONS] == [1, 2, 2, 3]
+    assert 0 < by["a"]["n_excluded_pancreas"] < by["asc"]["n_excluded_pancreas"]
+    for c in ("ac", "as", "asc"):  # (one axial slice alone may do worse than no motion when the slice is poor)
+        assert by[c]["error_mm"] < by[c]["initial_error_mm"]
+    assert by["asc"]["error_mm"] < by["a"]["error_mm"]
+    assert "axial + sagittal + coronal" in summarize_multi(rows)
+
+
+def test_baseline_regret_by_hand():
+    from warpmpm.selection import baseline_regret
+
+    # one case, slices 0..4, two combinations; error = |k - 1| (+1 for "p"); the pancreas peaks on slice 3
+    rows = []
+    for k in range(5):
+        for combo in ("p", "psdl"):
+            counts = {"pancreas": 10 + 5 * (k == 3), "stomach": k, "duodenum": 1, "left_kidney": 1}
+            rows.append({"case": "c", "orientation": "axial", "slice": k, "organs": combo, "deformation": 1,
+                         "error_mm": abs(k - 1) + (combo == "p"), **{f"count_{o}": v for o, v in counts.items()}})
+    table = TrainingTable.from_sweep(rows)
+    assert baseline_regret(table, "middle") == {"c": 1.0}        # psdl on slice 2 vs psdl on slice 1
+    assert baseline_regret(table, "max_pancreas") == {"c": 2.0}  # psdl on slice 3
+    assert baseline_regret(table, "random")["c"] == pytest.approx(np.mean([abs(k - 1) + e for k in range(5) for e in (0, 1)]))
+
+
+def test_run_case_slices_auto_uses_the_top_ranked_condition(tmp_path, capsys):
+    import json
+
+    from warpmpm.runner import CaseConfig as C
+    from warpmpm.runner import main, prepare_case
+
+    model, _ = tune_and_train(TrainingTable.from_sweep(synthetic_table(4)), split="row", patience=2, max_trials=3)
+    path = str(tmp_path / "sel.json")
+    model.save(path)
+    prep = prepare_case(C(phantom_resolution=3.0, particle_step=1, organs="p"))
+    (orientation, k, combo), _ = model.rank(prep.full_model, k=1)[0][0]
+    out_json = str(tmp_path / "out.json")
+    rc = main(["--phantom-resolution", "3", "--particle-step", "1", "--slices", "auto", "--selector", path, "--device", "cpu",
+               "--no-volume-registration", "--max-steps", "800", "--json", out_json])
+    assert rc == 0
+    out = json.load(open(out_json))
+    assert out["organs"] == combo and out["slices"] == [f"axial:{k + prep.offset[2]}"]
+    assert out["selection"]["top"][0][0] == ["axial", k, combo]
+    assert "selected" in capsys.readouterr().out
+    # a missing model is a clear error, not a traceback
+    assert main(["--phantom-resolution", "3", "--slices", "auto", "--selector", str(tmp_path / "nope.json")]) == 2

@@ -320,7 +320,7 @@ def _json_default(o):
 # Sweep
 # --------------------------------------------------------------------------------------------
 
-SWEEP_FIELDS = ["case", "protocol", "deformation", "organs", "orientation", "slice", "targets", "n_driven", "n_pancreas",
+SWEEP_FIELDS = ["case", "protocol", "deformation", "organs", "orientation", "slice", "targets", "excluded_driven", "n_driven", "n_pancreas",
                 "error_mm", "p95_mm", "dice", "steps", "wall_s", "converged",
                 "initial_error_mm", "initial_dice", "propagate_error_mm", "propagate_dice",
                 "count_pancreas", "count_stomach", "count_duodenum", "count_left_kidney"]
@@ -362,7 +362,8 @@ def sweep_task(case: dict, deformation: int, combinations, orientations, protoco
                 r = out["results"]
                 on = {o: int(counts[k, i]) for i, o in enumerate(prep.full_model.organs)}
                 rows.append({"case": name, "protocol": protocol, "deformation": int(deformation), "organs": combo,
-                             "orientation": orientation, "slice": k_in, "targets": cfg0.targets, "n_driven": out["n_driven"],
+                             "orientation": orientation, "slice": k_in, "targets": cfg0.targets,
+                             "excluded_driven": out["excluded_driven"], "n_driven": out["n_driven"],
                              "n_pancreas": out["n_particles"]["pancreas"], "error_mm": r["estimate"]["error_mm"],
                              "p95_mm": r["estimate"]["p95_mm"], "dice": r["estimate"]["dice"], "steps": r["estimate"]["steps"],
                              "wall_s": r["estimate"]["wall_s"], "converged": r["estimate"]["converged"],
@@ -392,8 +393,12 @@ def sweep(cases: list[dict], deformations, combinations, orientations=("axial",)
     tasks = [(c, int(d)) for c in cases for d in deformations]
     args = [(c, d, tuple(combinations), tuple(orientations), protocol, slice_stride, base, done) for c, d in tasks]
     new_file = not os.path.exists(out_csv)
+    fields = SWEEP_FIELDS
+    if not new_file:  # append in the file's own column order (a CSV from an older version keeps its header)
+        with open(out_csv) as f:
+            fields = next(csv.reader(f), None) or SWEEP_FIELDS
     with open(out_csv, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=SWEEP_FIELDS, extrasaction="ignore")
+        w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         if new_file:
             w.writeheader()
 
@@ -457,6 +462,140 @@ def summarize(rows: list[dict]) -> str:
         pe = np.array([float(r["propagate_error_mm"]) for r in rs])
         lines.append(f"| {combo}, best slice | {e.mean():.2f} +- {e.std():.2f} | {dc.mean():.3f} +- {dc.std():.3f} | {len(e)} |")
         lines.append(f"| {combo}, propagate (same slice) | {pe.mean():.2f} +- {pe.std():.2f} | | {len(pe)} |")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# Multi-direction protocol (axial + sagittal and/or coronal slices)
+# --------------------------------------------------------------------------------------------
+
+MULTI_CONDITIONS = ("a", "ac", "as", "asc")
+MULTI_FIELDS = ["case", "protocol", "deformation", "condition", "pick", "slices", "n_driven", "n_excluded_pancreas",
+                "error_mm", "dice", "initial_error_mm", "initial_dice", "steps", "wall_s", "converged"]
+
+#: The paper's multi-direction table (20 MR cases x 8 deformations, psdl, GT targets, driven particles excluded).
+PAPER_MULTI = {"a": (4.26, 1.16, 0.610), "ac": (3.12, 0.989, 0.636), "as": (2.42, 0.584, 0.650), "asc": (2.13, 0.598, 0.662)}
+
+
+def multi_direction_task(case: dict, deformation: int, axial_model_path: str, plane_model_path: str, base: CaseConfig,
+                         top: int = 3) -> list[dict]:
+    """The paper's multi-direction validation for one (case, deformation), organs psdl, GT targets.
+
+    The axial slice is the psdl slice the axial selection model ranks best; the sagittal and coronal
+    candidates are the ``top`` slices the plane model (Dice rank from particle counts) ranks best.
+    Conditions: ``a`` (axial only), ``ac`` and ``as`` (axial + each of the ``top`` candidates), ``asc``
+    (axial + every sagittal x coronal pair of candidates). Particles on any driving slice are excluded
+    from the metrics, as in the paper. Each condition gives two rows: ``pick=top1`` (the first-ranked
+    candidates, what a user would get without a ground truth) and ``pick=best_of_{top}`` (the best
+    run among the candidates judged against the GT: the paper's rule).
+    """
+    from .selection import SelectionModel
+
+    axial_model = SelectionModel.load(axial_model_path)
+    plane_model = SelectionModel.load(plane_model_path)
+    name = case.get("name", "case")
+    cfg0 = replace(base, **{k: v for k, v in case.items() if k != "name"}, deformation=int(deformation), organs="psdl",
+                   targets="gt", exclude_driven=True, baselines=("initial",))
+    prep = prepare_case(cfg0)
+    full = prep.full_model
+    geom = full.geometry
+
+    def label(orientation, k):
+        return f"{orientation}:{k + prep.offset[orientation_image_axis(geom, orientation)]}"
+
+    ranked_axial, _ = axial_model.rank(full, ("axial",), combinations=("psdl",), k=1)
+    ax = label(*ranked_axial[0][0][:2])
+    cand = {o: [label(*key[:2]) for key, _ in plane_model.rank(full, (o,), combinations=("psdl",), k=top)[0]]
+            for o in ("sagittal", "coronal")}
+    runs = {"a": [[ax]],
+            "ac": [[ax, c] for c in cand["coronal"]],
+            "as": [[ax, s] for s in cand["sagittal"]],
+            "asc": [[ax, s, c] for s in cand["sagittal"] for c in cand["coronal"]]}
+    gt = make_ground_truth(prep, cfg0)
+    model = full.subset(parse_organs("psdl"))
+    pancreas = model.organ_slice("pancreas")
+    rows = []
+    for cond in MULTI_CONDITIONS:
+        outs = []
+        for slices in runs[cond]:
+            out = run_prepared(prep, gt, replace(cfg0, slices=",".join(slices)))
+            r = out["results"]
+            n_excl = int(np.sum(pancreas[driven_indices(model, resolve_slices(prep, model, ",".join(slices)))]))
+            outs.append({"case": name, "protocol": cfg0.protocol, "deformation": int(deformation), "condition": cond,
+                         "slices": ",".join(out["slices"]), "n_driven": out["n_driven"], "n_excluded_pancreas": n_excl,
+                         "error_mm": r["estimate"]["error_mm"], "dice": r["estimate"]["dice"],
+                         "initial_error_mm": r["initial"]["error_mm"], "initial_dice": r["initial"]["dice"],
+                         "steps": r["estimate"]["steps"], "wall_s": r["estimate"]["wall_s"], "converged": r["estimate"]["converged"]})
+        rows.append(outs[0] | {"pick": "top1"})
+        if len(outs) > 1:
+            rows.append(min(outs, key=lambda o: o["error_mm"]) | {"pick": f"best_of_{top}"})
+        else:
+            rows.append(outs[0] | {"pick": f"best_of_{top}"})
+    return rows
+
+
+def multi_direction(cases: list[dict], deformations, axial_model_path: str, plane_model_path: str, out_csv: str, *,
+                    base: CaseConfig | None = None, top: int = 3, workers: int = 1, progress=print) -> list[dict]:
+    """:func:`multi_direction_task` over cases x deformations (a local process pool with ``workers > 1``),
+    written to ``out_csv`` as tasks finish; resumable (finished (case, deformation) pairs are skipped)."""
+    from .selection import SelectionModel
+
+    for path in (axial_model_path, plane_model_path):
+        SelectionModel.load(path)  # fail early, naming the missing model
+    base = base or CaseConfig()
+    rows: list[dict] = []
+    if os.path.exists(out_csv):
+        with open(out_csv) as f:
+            rows = list(csv.DictReader(f))
+    done = {(r["case"], str(r["deformation"])) for r in rows}
+    args = [(c, int(d), axial_model_path, plane_model_path, base, top) for c in cases for d in deformations
+            if (c.get("name", "case"), str(d)) not in done]
+    new_file = not os.path.exists(out_csv)
+    with open(out_csv, "a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=MULTI_FIELDS, extrasaction="ignore")
+        if new_file:
+            w.writeheader()
+
+        def keep(task_rows):
+            for row in task_rows:
+                w.writerow(row)
+                rows.append({k: str(v) for k, v in row.items()})
+            f.flush()
+            if progress and task_rows:
+                progress(f"{task_rows[0]['case']} def{task_rows[0]['deformation']}: " + ", ".join(
+                    f"{r['condition']} {r['error_mm']:.2f}" for r in task_rows if r["pick"] == "top1"))
+
+        if workers <= 1:
+            for a in args:
+                keep(multi_direction_task(*a))
+        else:
+            import concurrent.futures as cf
+            import multiprocessing as mp
+
+            with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+                for fut in cf.as_completed([ex.submit(multi_direction_task, *a) for a in args]):
+                    keep(fut.result())
+    return rows
+
+
+def summarize_multi(rows: list[dict]) -> str:
+    """The multi-direction table (mean +- sd over cases x deformations) beside the paper's."""
+    lines = ["| condition | pick | error mm | Dice | initial error mm (same exclusion) | n | paper error mm | paper Dice |",
+             "|---|---|---|---|---|---|---|---|"]
+    names = {"a": "axial only", "ac": "axial + coronal", "as": "axial + sagittal", "asc": "axial + sagittal + coronal"}
+    picks = sorted({r["pick"] for r in rows}, key=lambda p: (p != "top1", p))
+    for cond in MULTI_CONDITIONS:
+        for pick in picks:
+            rs = [r for r in rows if r["condition"] == cond and r["pick"] == pick]
+            if not rs:
+                continue
+            e = np.array([float(r["error_mm"]) for r in rs])
+            dc = np.array([float(r["dice"]) for r in rs])
+            ie = np.array([float(r["initial_error_mm"]) for r in rs])
+            pe, psd, pdice = PAPER_MULTI[cond]
+            paper = f"{pe:.2f} +- {psd:.2f} | {pdice:.3f}" if pick != "top1" else " | "
+            lines.append(f"| {names[cond]} | {pick} | {e.mean():.2f} +- {e.std():.2f} | {dc.mean():.3f} +- {dc.std():.3f} | "
+                         f"{ie.mean():.2f} +- {ie.std():.2f} | {len(e)} | {paper} |")
     return "\n".join(lines)
 
 

@@ -24,12 +24,17 @@ from .model import ParticleModel
 
 COMBINATIONS = ("p", "ps", "pd", "pl", "psd", "psl", "pdl", "psdl")
 FEATURES = ("position",) + tuple(f"n_{o}" for o in ORGANS)
+#: The second model's features (sagittal and coronal slices): organ particle counts only, as the paper's.
+COUNT_FEATURES = tuple(f"n_{o}" for o in ORGANS)
+#: Targets where a larger value is better.
+HIGHER_IS_BETTER = ("dice", "dice_rank")
 
 
-def raw_features(slice_index: int, counts_on_slice: dict[str, int], combination: str) -> list[float]:
-    """Unstandardised features of one condition."""
+def raw_features(slice_index: int, counts_on_slice: dict[str, int], combination: str, features=FEATURES) -> list[float]:
+    """Unstandardised features of one condition, in the order of ``features``."""
     organs = parse_organs(combination)
-    return [float(slice_index)] + [float(counts_on_slice.get(o, 0)) if o in organs else 0.0 for o in ORGANS]
+    counts = [float(counts_on_slice.get(o, 0)) if o in organs else 0.0 for o in ORGANS]
+    return ([float(slice_index)] if "position" in features else []) + counts
 
 
 def standardise(X: np.ndarray) -> np.ndarray:
@@ -39,25 +44,31 @@ def standardise(X: np.ndarray) -> np.ndarray:
     return (X - X.mean(axis=0)) / np.where(sd > 0, sd, 1.0)
 
 
-def candidates(model: ParticleModel, orientations=("axial",), combinations=COMBINATIONS) -> tuple[list[tuple], np.ndarray]:
+def candidates(model: ParticleModel, orientations=("axial",), combinations=COMBINATIONS,
+               features=FEATURES) -> tuple[list[tuple], np.ndarray]:
     """Every (orientation, slice, combination) whose slice holds pancreas particles, with standardised features.
 
-    ``model`` must hold every organ that a combination names (build it with ``"psdl"``).
+    ``model`` must hold every organ that a combination names (build it with ``"psdl"``). Features are
+    standardised per orientation over the candidate rows, as in :meth:`TrainingTable.from_sweep`, so
+    ``combinations`` must be the ones the model was trained with.
     """
     keys, rows = [], []
     for orientation in orientations:
         counts = model.slice_counts(orientation)
         pan = counts[:, model.organs.index("pancreas")]
+        block = []
         for k in np.nonzero(pan > 0)[0]:
             on = {o: int(counts[k, i]) for i, o in enumerate(model.organs)}
             for combo in combinations:
                 if not set(parse_organs(combo)) <= set(model.organs):
                     continue
                 keys.append((orientation, int(k), combo))
-                rows.append(raw_features(int(k), on, combo))
+                block.append(raw_features(int(k), on, combo, features))
+        if block:
+            rows.append(standardise(np.asarray(block)))
     if not rows:
         raise InputError("no candidate slice holds pancreas particles")
-    return keys, standardise(np.asarray(rows))
+    return keys, np.vstack(rows)
 
 
 def r2_score(y: np.ndarray, pred: np.ndarray) -> float:
@@ -72,32 +83,84 @@ def rmse(y, pred) -> float:
 
 @dataclass
 class TrainingTable:
-    """Features, target and case of every condition (from a sweep, averaged over deformations)."""
+    """Features, target and case of every condition (from a sweep, averaged over deformations).
+
+    ``value`` is the mean of the measured metric (equal to ``y`` except for ``dice_rank``, where ``y``
+    is the within-(case, orientation) rank of ``value``); regret is computed on ``value``.
+    """
 
     X: np.ndarray
     y: np.ndarray
     cases: np.ndarray
     keys: list[tuple]
     target: str
+    features: tuple = FEATURES
+    value: np.ndarray | None = None
+
+    @property
+    def groups(self) -> np.ndarray:
+        """(case, orientation) of every row as one string: the unit of standardisation, ranking and regret."""
+        return np.array([f"{k[0]}|{k[1]}" for k in self.keys])
 
     @staticmethod
-    def from_sweep(rows: list[dict], target: str = "error_mm") -> "TrainingTable":
-        """Average ``target`` over deformations per (case, orientation, slice, combination); features
-        from the per-organ slice counts the sweep recorded, standardised per case."""
+    def from_sweep(rows: list[dict], target: str = "error_mm", orientations=None, combinations=None,
+                   complete_only: bool = True) -> "TrainingTable":
+        """Average the metric over deformations per (case, orientation, slice, combination); features
+        from the per-organ slice counts the sweep recorded, standardised per (case, orientation).
+
+        ``target``: ``error_mm`` or ``dice`` (the paper's first model: slice position and counts), or
+        ``dice_rank`` (its second model, for sagittal and coronal slices: counts only; the target is the
+        percentile rank of the mean Dice among the slices of the same case and orientation, 1 = best).
+        ``orientations`` / ``combinations``: keep only these rows. ``complete_only``: drop the cases
+        where some condition has fewer deformations than the most complete condition (an interrupted
+        sweep), so that every target is a mean over the same deformations.
+        """
+        if target not in ("error_mm", "dice", "dice_rank"):
+            raise InputError(f"unknown selection target {target!r}; use error_mm, dice or dice_rank")
+        features = COUNT_FEATURES if target == "dice_rank" else FEATURES
+        metric = "dice" if target == "dice_rank" else target
         groups: dict[tuple, list] = {}
         feats: dict[tuple, list[float]] = {}
         for r in rows:
+            if orientations is not None and r["orientation"] not in orientations:
+                continue
+            if combinations is not None and r["organs"] not in combinations:
+                continue
             key = (r["case"], r["orientation"], int(float(r["slice"])), r["organs"])
-            groups.setdefault(key, []).append(float(r[target]))
+            groups.setdefault(key, []).append(float(r[metric]))
             counts = {o: int(float(r[f"count_{o}"])) for o in ORGANS}
-            feats[key] = raw_features(int(float(r["slice"])), counts, r["organs"])
+            feats[key] = raw_features(int(float(r["slice"])), counts, r["organs"], features)
+        if groups and complete_only:
+            full = max(len(v) for v in groups.values())
+            partial = {k[0] for k, v in groups.items() if len(v) < full}
+            groups = {k: v for k, v in groups.items() if k[0] not in partial}
+        if not groups:
+            raise InputError("no sweep rows left for this table (check the orientations, combinations and completeness)")
         keys = sorted(groups)
         cases = np.array([k[0] for k in keys])
         X = np.asarray([feats[k] for k in keys], dtype=np.float64)
-        for c in np.unique(cases):
-            X[cases == c] = standardise(X[cases == c])
-        y = np.array([np.mean(groups[k]) for k in keys])
-        return TrainingTable(X, y, cases, keys, target)
+        value = np.array([np.mean(groups[k]) for k in keys])
+        y = value.copy()
+        unit = np.array([f"{k[0]}|{k[1]}" for k in keys])
+        for g in np.unique(unit):
+            sel = unit == g
+            X[sel] = standardise(X[sel])
+            if target == "dice_rank":
+                y[sel] = percentile_rank(value[sel])
+        return TrainingTable(X, y, cases, keys, target, features, value)
+
+
+def percentile_rank(v: np.ndarray) -> np.ndarray:
+    """Rank of each value among ``v`` scaled to [0, 1] (0 = smallest, 1 = largest; ties share the mean rank)."""
+    v = np.asarray(v, dtype=np.float64)
+    if len(v) == 1:
+        return np.ones(1)
+    order = np.argsort(v, kind="stable")
+    ranks = np.empty(len(v))
+    ranks[order] = np.arange(len(v), dtype=np.float64)
+    for u in np.unique(v):  # ties
+        ranks[v == u] = ranks[v == u].mean()
+    return ranks / (len(v) - 1)
 
 
 def split_by_case(cases: np.ndarray, test_fraction: float = 0.2, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -127,19 +190,22 @@ class SelectionModel:
     target: str
     params: dict = field(default_factory=dict)
     features: tuple = FEATURES
+    combinations: tuple = COMBINATIONS
+    orientations: tuple = ("axial",)
 
     def predict(self, X: np.ndarray) -> np.ndarray:
         return self.booster.inplace_predict(np.asarray(X, dtype=np.float32))
 
     @property
     def lower_is_better(self) -> bool:
-        return self.target != "dice"
+        return self.target not in HIGHER_IS_BETTER
 
     def save(self, path: str) -> None:
         """``path`` (XGBoost JSON) and ``path + '.meta.json'`` (features, target, standardisation)."""
         self.booster.save_model(path)
         with open(path + ".meta.json", "w") as f:
-            json.dump({"target": self.target, "features": list(self.features), "standardisation": "per-case z-score",
+            json.dump({"target": self.target, "features": list(self.features), "standardisation": "per-(case, orientation) z-score",
+                       "combinations": list(self.combinations), "orientations": list(self.orientations),
                        "params": self.params}, f, indent=1)
 
     @staticmethod
@@ -153,50 +219,67 @@ class SelectionModel:
         booster.set_param({"nthread": 1})  # ~100 candidate rows: threads cost more than they save
         with open(path + ".meta.json") as f:
             meta = json.load(f)
-        return SelectionModel(booster, meta["target"], meta.get("params", {}), tuple(meta["features"]))
+        return SelectionModel(booster, meta["target"], meta.get("params", {}), tuple(meta["features"]),
+                              tuple(meta.get("combinations", COMBINATIONS)), tuple(meta.get("orientations", ("axial",))))
 
-    def rank(self, model: ParticleModel, orientations=("axial",), combinations=COMBINATIONS, k: int = 5):
-        """Best conditions first: list of ((orientation, slice, combination), predicted value), and the time (s)."""
+    def rank(self, model: ParticleModel, orientations=None, combinations=None, k: int | None = 5):
+        """Best conditions first: list of ((orientation, slice, combination), predicted value), and the time (s).
+
+        Candidates are built (and standardised) over the combinations the model was trained with;
+        ``combinations`` then keeps only those in the answer. ``k=None``: every candidate.
+        """
         t0 = time.perf_counter()
-        keys, X = candidates(model, orientations, combinations)
+        orientations = tuple(orientations or self.orientations)
+        keys, X = candidates(model, orientations, self.combinations, self.features)
         pred = self.predict(X)
-        order = np.argsort(pred if self.lower_is_better else -pred)
+        order = np.argsort(pred if self.lower_is_better else -pred, kind="stable")
+        if combinations is not None:
+            order = [i for i in order if keys[i][2] in combinations]
         wall = time.perf_counter() - t0
-        return [(keys[i], float(pred[i])) for i in order[:k]], wall
+        return [(keys[i], float(pred[i])) for i in list(order)[:k]], wall
 
 
-def _xgb_train(params: dict, X, y, rounds: int):
+def _xgb_train(params: dict, X, y, rounds: int, features=FEATURES):
     import xgboost as xgb
 
-    d = xgb.DMatrix(np.asarray(X, dtype=np.float32), label=y, feature_names=list(FEATURES))
+    d = xgb.DMatrix(np.asarray(X, dtype=np.float32), label=y, feature_names=list(features))
     return xgb.train({k: v for k, v in params.items()}, d, num_boost_round=rounds)
 
 
-def _cv_r2(params, rounds, X, y, folds: int, seed: int) -> float:
-    import xgboost as xgb
-
+def _cv_r2(params, rounds, X, y, folds: int, seed: int, features=FEATURES) -> float:
     idx = np.random.default_rng(seed).permutation(len(y))
     scores = []
     for f in range(folds):
         test = idx[f::folds]
         train = np.setdiff1d(idx, test)
-        b = _xgb_train(params, X[train], y[train], rounds)
-        scores.append(r2_score(y[test], b.predict(xgb.DMatrix(np.asarray(X[test], dtype=np.float32), feature_names=list(FEATURES)))))
+        b = _xgb_train(params, X[train], y[train], rounds, features)
+        scores.append(r2_score(y[test], b.inplace_predict(np.asarray(X[test], dtype=np.float32))))
     return float(np.nanmean(scores))
 
 
 def tune_and_train(table: TrainingTable, *, split: str = "case", patience: int = 100, max_trials: int = 1000, folds: int = 5,
                    storage: str | None = None, study_name: str = "warpmpm-selection", seed: int = 0,
-                   test_fraction: float = 0.2) -> tuple[SelectionModel, dict]:
+                   test_fraction: float = 0.2, test_cases=None) -> tuple[SelectionModel, dict]:
     """Tune XGBoost with Optuna (5-fold CV mean R2 on the training rows), train on them, report.
 
     ``split``: ``case`` (no case on both sides; the honest one) or ``row`` (the paper's random rows).
+    ``test_cases``: with ``split="case"``, hold out exactly these cases instead of a random 20 %.
     Stops after ``patience`` trials without a better mean R2 (or ``max_trials``). ``storage``: an
     Optuna storage URL such as ``sqlite:///selection.db``; an existing study of that name resumes.
     """
     import optuna
 
-    train, test = split_by_case(table.cases, test_fraction, seed) if split == "case" else split_by_row(len(table.y), test_fraction, seed)
+    if split == "case" and test_cases is not None:
+        test = np.isin(table.cases, list(test_cases))
+        if not test.any() or test.all():
+            raise InputError(f"test cases {sorted(test_cases)} leave no rows on one side of the split")
+        train = ~test
+    elif split == "case":
+        train, test = split_by_case(table.cases, test_fraction, seed)
+    elif split == "row":
+        train, test = split_by_row(len(table.y), test_fraction, seed)
+    else:
+        raise InputError(f"unknown split {split!r}; use case or row")
     Xtr, ytr = table.X[train], table.y[train]
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     study = optuna.create_study(direction="maximize", storage=storage, study_name=study_name, load_if_exists=storage is not None,
@@ -209,7 +292,7 @@ def tune_and_train(table: TrainingTable, *, split: str = "case", patience: int =
                   "min_child_weight": trial.suggest_float("min_child_weight", 1.0, 10.0),
                   "lambda": trial.suggest_float("lambda", 1e-3, 10.0, log=True), "seed": seed, "nthread": 1}
         rounds = trial.suggest_int("rounds", 50, 400)
-        return _cv_r2(params, rounds, Xtr, ytr, folds, seed)
+        return _cv_r2(params, rounds, Xtr, ytr, folds, seed, table.features)
 
     def stop_when_stale(study, trial):
         best = study.best_trial.number
@@ -217,34 +300,85 @@ def tune_and_train(table: TrainingTable, *, split: str = "case", patience: int =
             study.stop()
 
     done_before = len(study.trials)
+    t0 = time.perf_counter()
     study.optimize(objective, n_trials=max(0, max_trials - done_before), callbacks=[stop_when_stale])
+    tuning_s = time.perf_counter() - t0
     bp = dict(study.best_params)
     rounds = bp.pop("rounds")
     params = {"objective": "reg:squarederror", "seed": seed, "nthread": 1, **bp}
-    booster = _xgb_train(params, Xtr, ytr, rounds)
-    model = SelectionModel(booster, table.target, {**params, "rounds": rounds})
+    booster = _xgb_train(params, Xtr, ytr, rounds, table.features)
+    orientations = tuple(sorted({k[1] for k in table.keys}))
+    combos = tuple(c for c in COMBINATIONS if c in {k[3] for k in table.keys})
+    model = SelectionModel(booster, table.target, {**params, "rounds": rounds}, tuple(table.features), combos, orientations)
     ptr, pte = model.predict(Xtr), model.predict(table.X[test])
     gain = booster.get_score(importance_type="gain")
     total = sum(gain.values()) or 1.0
-    report = {"split": split, "n_train": int(train.sum()), "n_test": int(test.sum()), "trials": len(study.trials),
+    report = {"target": table.target, "split": split, "n_train": int(train.sum()), "n_test": int(test.sum()),
+              "n_cases": int(len(np.unique(table.cases))), "trials": len(study.trials), "tuning_s": tuning_s,
               "best_cv_r2": float(study.best_value), "train_r2": r2_score(ytr, ptr), "train_rmse": rmse(ytr, ptr),
               "test_r2": r2_score(table.y[test], pte), "test_rmse": rmse(table.y[test], pte),
-              "importance": {f: gain.get(f, 0.0) / total for f in FEATURES},
+              "importance": {f: gain.get(f, 0.0) / total for f in table.features},
               "test_cases": sorted(set(table.cases[test])) if split == "case" else None}
     model.test_mask = test
     return model, report
 
 
-def regret(table: TrainingTable, model: SelectionModel, mask: np.ndarray | None = None) -> dict[str, float]:
-    """Per case: true target of the predicted-best condition minus the brute-force best (>= 0, in the target's unit)."""
+def regret(table: TrainingTable, model: SelectionModel, mask: np.ndarray | None = None, top: int = 1) -> dict[str, float]:
+    """Per (case, orientation) group: how much worse the predicted-best condition is than the brute-force
+    best, in the measured metric's unit (mm for error, Dice points for Dice; >= 0).
+
+    ``top > 1``: the best of the ``top`` predicted conditions (the paper tries the top 3 sagittal and
+    coronal slices). Groups are named ``case`` when the table has one orientation, else ``case|orientation``.
+    """
     mask = np.ones(len(table.y), dtype=bool) if mask is None else mask
+    value = table.value if table.value is not None else table.y
+    groups = table.groups
+    one_orientation = len({k[1] for k in table.keys}) == 1
+    lower = table.target not in HIGHER_IS_BETTER
     out = {}
-    for c in np.unique(table.cases[mask]):
-        sel = mask & (table.cases == c)
+    for g in np.unique(groups[mask]):
+        sel = mask & (groups == g)
         pred = model.predict(table.X[sel])
-        y = table.y[sel]
-        if model.lower_is_better:
-            out[str(c)] = float(y[np.argmin(pred)] - y.min())
+        v = value[sel]
+        picked = np.argsort(pred if model.lower_is_better else -pred, kind="stable")[:top]
+        name = g.split("|")[0] if one_orientation else g
+        out[name] = float(v[picked].min() - v.min()) if lower else float(v.max() - v[picked].max())
+    return out
+
+
+def baseline_regret(table: TrainingTable, rule: str, mask: np.ndarray | None = None, combination: str = "psdl") -> dict[str, float]:
+    """Regret of a choice made without the model, per (case, orientation) group, as :func:`regret`.
+
+    ``rule``: ``random`` (the expected regret of a condition drawn at random), ``middle`` (the
+    ``combination`` at the middle slice of the pancreas: the runner's default), ``max_pancreas``
+    (the ``combination`` on the slice with the most pancreas particles).
+    """
+    if rule not in ("random", "middle", "max_pancreas"):
+        raise InputError(f"unknown baseline rule {rule!r}; use random, middle or max_pancreas")
+    mask = np.ones(len(table.y), dtype=bool) if mask is None else mask
+    value = table.value if table.value is not None else table.y
+    lower = table.target not in HIGHER_IS_BETTER
+    groups = table.groups
+    one_orientation = len({k[1] for k in table.keys}) == 1
+    combo = np.array([k[3] for k in table.keys])
+    slices = np.array([k[2] for k in table.keys])
+    n_pan = table.X[:, table.features.index("n_pancreas")]  # standardised within the group: same order as the counts
+    out = {}
+    for g in np.unique(groups[mask]):
+        sel = mask & (groups == g)
+        v = value[sel]
+        best = v.min() if lower else v.max()
+        if rule == "random":
+            pick = v.mean()
         else:
-            out[str(c)] = float(y.max() - y[np.argmax(pred)])
+            own = sel & (combo == combination)
+            if not own.any():
+                continue
+            if rule == "middle":
+                ks = slices[own]
+                i = np.argmin(np.abs(ks - np.median(ks)))
+            else:
+                i = np.argmax(n_pan[own])
+            pick = value[own][i]
+        out[g.split("|")[0] if one_orientation else g] = float(pick - best) if lower else float(best - pick)
     return out
