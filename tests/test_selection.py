@@ -189,7 +189,10 @@ def test_run_case_slices_auto_uses_the_top_ranked_condition(tmp_path, capsys):
                "--no-volume-registration", "--max-steps", "800", "--json", out_json])
     assert rc == 0
     out = json.load(open(out_json))
-    assert out["organs"] == combo and out["slices"] == [f"axial:{k + prep.offset[2]}"]
+    from warpmpm.model import orientation_image_axis
+
+    axis = orientation_image_axis(prep.full_model.geometry, "axial")
+    assert out["organs"] == combo and out["slices"] == [f"axial:{k + prep.offset[axis]}"]
     assert out["selection"]["top"][0][0] == ["axial", k, combo]
     assert "selected" in capsys.readouterr().out
     # a missing model is a clear error, not a traceback

@@ -1,0 +1,84 @@
+"""Time of choosing the driving condition with the selection model, against simulating the choices.
+
+For each case (the default phantom at particle step 2, and the real samples when present) this ranks
+every (axial slice, organ combination) with the trained axial model and every sagittal/coronal psdl
+slice with the plane model, timing the whole call (slice counts, standardisation, prediction; median
+of ``--repeats``), and runs ONE simulation of the chosen condition (paper deformation 1, affine
+targets) as the peer: the brute force the model replaces costs that times the number of candidates
+times 8 deformations. The paper: 1.48 +- 0.151 ms per choice.
+
+    python benchmarks/selection_speed.py --axial-model runs/selection_error.json --plane-model runs/selection_planes.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+import warp as wp  # noqa: E402
+
+from dataclasses import replace  # noqa: E402
+
+from warpmpm.model import orientation_image_axis  # noqa: E402
+from warpmpm.runner import CaseConfig, make_ground_truth, prepare_case, run_prepared  # noqa: E402
+from warpmpm.selection import SelectionModel  # noqa: E402
+
+DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
+
+
+def time_rank(model: SelectionModel, full, orientations, repeats: int) -> tuple[float, float, int]:
+    ts = []
+    for _ in range(repeats):
+        ranked, wall = model.rank(full, orientations, k=3)
+        ts.append(wall * 1e3)
+    ts = np.array(ts[max(1, repeats // 20):])  # drop the first calls (caches)
+    return float(np.median(ts)), float(np.percentile(ts, 95)), len(model.rank(full, orientations, k=None)[0])
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--axial-model", required=True)
+    p.add_argument("--plane-model", default=None)
+    p.add_argument("--repeats", type=int, default=200)
+    p.add_argument("--device", default="cpu")
+    a = p.parse_args(argv)
+    wp.config.quiet = True
+    axial = SelectionModel.load(a.axial_model)
+    plane = SelectionModel.load(a.plane_model) if a.plane_model else None
+    cases = [("phantom (default, step 2)", CaseConfig(particle_step=2, device=a.device, baselines=()))]
+    for name, preset in (("totalseg_mr", "totalseg_mr"), ("totalseg_ct", "totalseg_ct")):
+        labels = os.path.join(DATA, name, "labels.nii.gz")
+        if os.path.exists(labels):
+            cases.append((name, CaseConfig(labels=labels, image=os.path.join(DATA, name, "image.nii.gz"), preset=preset,
+                                           device=a.device, baselines=())))
+        else:
+            print(f"skipping {name}: {labels} is absent")
+    print(f"machine: {platform.node()} ({os.cpu_count()} cores), device {a.device}\n")
+    print("| case | particles | model | candidates | choice median ms | p95 ms | one simulation s | simulation / choice |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, cfg in cases:
+        prep = prepare_case(cfg)
+        full = prep.full_model
+        med, p95, n = time_rank(axial, full, ("axial",), a.repeats)
+        (orientation, k, combo), _ = axial.rank(full, k=1)[0][0]
+        gt = make_ground_truth(prep, cfg)
+        t0 = time.perf_counter()
+        k_in = k + prep.offset[orientation_image_axis(full.geometry, orientation)]
+        run_prepared(prep, gt, replace(cfg, organs=combo, slices=f"{orientation}:{k_in}"))
+        sim = time.perf_counter() - t0
+        print(f"| {name} | {full.n} | axial (slice x combination) | {n} | {med:.2f} | {p95:.2f} | {sim:.2f} | {sim / (med / 1e3):,.0f} |")
+        if plane is not None:
+            med, p95, n = time_rank(plane, full, ("sagittal", "coronal"), a.repeats)
+            print(f"| {name} | {full.n} | sagittal + coronal (psdl) | {n} | {med:.2f} | {p95:.2f} | | |")
+    print("\npaper: 1.48 +- 0.151 ms per choice (20-35 slices, 3 surrounding organs)")
+
+
+if __name__ == "__main__":
+    main()
