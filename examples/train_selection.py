@@ -79,6 +79,7 @@ def main(argv=None):
                                     study_name=f"selection-{a.target}-{split}", test_cases=test_cases if split == "case" else None)
         print(f"split by {split}: trials {rep['trials']} ({rep['tuning_s']:.0f} s), CV R2 {rep['best_cv_r2']:.3f}, "
               f"train R2 {rep['train_r2']:.3f} RMSE {rep['train_rmse']:.4f}, test R2 {rep['test_r2']:.3f} RMSE {rep['test_rmse']:.4f}")
+        print(f"  test, within each case: R2 {rep['test_within_case_r2']:.3f}, Spearman {rep['test_spearman']:.3f}")
         print("  importance: " + ", ".join(f"{k} {v:.3f}" for k, v in rep["importance"].items()))
         if split == "case":
             for top in (1, 3):

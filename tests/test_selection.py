@@ -197,3 +197,15 @@ def test_run_case_slices_auto_uses_the_top_ranked_condition(tmp_path, capsys):
     assert "selected" in capsys.readouterr().out
     # a missing model is a clear error, not a traceback
     assert main(["--phantom-resolution", "3", "--slices", "auto", "--selector", str(tmp_path / "nope.json")]) == 2
+
+
+def test_within_case_scores_ignore_case_offsets():
+    from warpmpm.selection import within_group_scores
+
+    table = TrainingTable.from_sweep(synthetic_table(3))
+    offset = np.array([{"c0": 0.0, "c1": 5.0, "c2": -3.0}[c] for c in table.cases])
+    mask = np.ones(len(table.y), dtype=bool)
+    s = within_group_scores(table, table.y + offset, mask)  # right order within each case, wrong level
+    assert s["test_within_case_r2"] == pytest.approx(1.0) and s["test_spearman"] == pytest.approx(1.0)
+    s = within_group_scores(table, -table.y, mask)
+    assert s["test_spearman"] == pytest.approx(-1.0)

@@ -319,8 +319,27 @@ def tune_and_train(table: TrainingTable, *, split: str = "case", patience: int =
               "test_r2": r2_score(table.y[test], pte), "test_rmse": rmse(table.y[test], pte),
               "importance": {f: gain.get(f, 0.0) / total for f in table.features},
               "test_cases": sorted(set(table.cases[test])) if split == "case" else None}
+    report |= within_group_scores(table, pte, test)
     model.test_mask = test
     return model, report
+
+
+def within_group_scores(table: TrainingTable, pred: np.ndarray, mask: np.ndarray) -> dict:
+    """How well ``pred`` (for the rows in ``mask``) orders conditions WITHIN each (case, orientation):
+    the R2 after removing each group's mean from target and prediction (features are standardised
+    per case, so a case's overall level cannot be predicted and does not matter for choosing), and
+    the mean Spearman rank correlation over the groups."""
+    y, groups = table.y[mask], table.groups[mask]
+    yc, pc, rho = y.astype(np.float64).copy(), np.asarray(pred, dtype=np.float64).copy(), []
+    for g in np.unique(groups):
+        sel = groups == g
+        yc[sel] -= yc[sel].mean()
+        pc[sel] -= pc[sel].mean()
+        if sel.sum() > 2:
+            a, b = percentile_rank(y[sel]), percentile_rank(pred[sel])
+            if a.std() > 0 and b.std() > 0:
+                rho.append(float(np.corrcoef(a, b)[0, 1]))
+    return {"test_within_case_r2": r2_score(yc, pc), "test_spearman": float(np.mean(rho)) if rho else float("nan")}
 
 
 def regret(table: TrainingTable, model: SelectionModel, mask: np.ndarray | None = None, top: int = 1) -> dict[str, float]:
