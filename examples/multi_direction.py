@@ -16,7 +16,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from warpmpm.images import InputError  # noqa: E402
-from warpmpm.runner import CaseConfig, multi_direction, summarize_multi  # noqa: E402
+from warpmpm.runner import CaseConfig, multi_direction, summarize_multi, sweep_cases  # noqa: E402
 
 
 def main(argv=None):
@@ -34,21 +34,17 @@ def main(argv=None):
     p.add_argument("--top", type=int, default=3, help="sagittal and coronal candidates tried")
     p.add_argument("--device", default=None)
     p.add_argument("--out", default="runs/multi.csv")
-    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--workers", type=int, default=1, help="parallel tasks (one per case x deformation)")
+    p.add_argument("--scheduler", default=None, help="'local' for a Dask LocalCluster of --workers, or a Dask scheduler address")
     a = p.parse_args(argv)
     try:
-        if a.labels:
-            cases = [{"name": os.path.basename(os.path.dirname(os.path.abspath(a.labels))), "labels": a.labels, "image": a.image,
-                      "preset": a.preset}]
-        else:
-            cases = [{"name": f"phantom{s}", "phantom_seed": int(s), "phantom_resolution": a.phantom_resolution}
-                     for s in a.phantom_seeds.split(",")]
+        cases = sweep_cases(a.labels, a.image, a.preset, a.phantom_seeds, a.phantom_resolution)
         d = os.path.dirname(os.path.abspath(a.out))
         if not os.path.isdir(d):
             raise InputError(f"output folder {d} for --out does not exist")
         base = CaseConfig(particle_step=a.particle_step, device=a.device, protocol=a.protocol)
         rows = multi_direction(cases, [int(x) for x in a.deformations.split(",")], a.axial_model, a.plane_model, a.out,
-                               base=base, top=a.top, workers=a.workers)
+                               base=base, top=a.top, workers=a.workers, scheduler=a.scheduler)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

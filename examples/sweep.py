@@ -14,7 +14,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from warpmpm.images import InputError  # noqa: E402
-from warpmpm.runner import COMBINATIONS, CaseConfig, summarize, sweep  # noqa: E402
+from warpmpm.runner import COMBINATIONS, CaseConfig, summarize, sweep, sweep_cases  # noqa: E402
 
 
 def main(argv=None):
@@ -40,12 +40,7 @@ def main(argv=None):
     p.add_argument("--scheduler", default=None, help="'local' for a Dask LocalCluster of --workers, or a Dask scheduler address")
     a = p.parse_args(argv)
     try:
-        if a.labels:
-            cases = [{"name": os.path.basename(os.path.dirname(os.path.abspath(a.labels))), "labels": a.labels, "image": a.image,
-                      "preset": a.preset}]
-        else:
-            cases = [{"name": f"phantom{s}", "phantom_seed": int(s), "phantom_resolution": a.phantom_resolution}
-                     for s in a.phantom_seeds.split(",")]
+        cases = sweep_cases(a.labels, a.image, a.preset, a.phantom_seeds, a.phantom_resolution)
         combos = COMBINATIONS if a.organs == "all" else tuple(a.organs.split(","))
         os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
         base = CaseConfig(particle_step=a.particle_step, device=a.device, targets=a.targets, max_steps=a.max_steps,

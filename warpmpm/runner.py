@@ -373,6 +373,82 @@ def sweep_task(case: dict, deformation: int, combinations, orientations, protoco
     return rows
 
 
+def sweep_cases(labels: str | None, image: str | None, preset: str, phantom_seeds: str, phantom_resolution: float) -> list[dict]:
+    """The case dicts of :func:`sweep` from command-line values: one labelled case (named for its
+    folder) or a phantom per comma-separated seed (``phantom<seed>``)."""
+    if labels:
+        return [{"name": os.path.basename(os.path.dirname(os.path.abspath(labels))), "labels": labels, "image": image, "preset": preset}]
+    try:
+        seeds = [int(s) for s in phantom_seeds.split(",")]
+    except ValueError:
+        raise InputError(f"--phantom-seeds must be comma-separated integers, got {phantom_seeds!r}") from None
+    return [{"name": f"phantom{s}", "phantom_seed": s, "phantom_resolution": phantom_resolution} for s in seeds]
+
+
+def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: str | None = None) -> None:
+    """Call ``fn(*a)`` for every ``a`` in ``args`` and hand each result to ``on_result`` as it finishes.
+
+    ``scheduler=None``: here (``workers <= 1``) or in a local process pool of ``workers`` (spawned,
+    so each process initialises Warp itself); ``"local"``: a Dask ``LocalCluster`` of ``workers``
+    single-threaded processes; any other value: the address of a running Dask scheduler.
+    """
+    if scheduler is None and workers <= 1:
+        for a in args:
+            on_result(fn(*a))
+    elif scheduler is None:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+            for fut in cf.as_completed([ex.submit(fn, *a) for a in args]):
+                on_result(fut.result())
+    else:
+        from distributed import Client, LocalCluster, as_completed
+
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) if scheduler == "local" else None
+        client = Client(cluster if cluster is not None else scheduler)
+        try:
+            for fut in as_completed([client.submit(fn, *a, pure=False) for a in args]):
+                on_result(fut.result())
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+
+def _read_rows(path: str) -> list[dict]:
+    if not os.path.exists(path):
+        return []
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+class _CsvAppender:
+    """Append rows to a CSV as tasks finish (flushed per task), in the file's own column order when it exists."""
+
+    def __init__(self, path: str, fields: list[str]):
+        self.path, self.fields = path, fields
+
+    def __enter__(self):
+        new_file = not os.path.exists(self.path)
+        if not new_file:  # a CSV from an older version keeps its header
+            with open(self.path) as f:
+                self.fields = next(csv.reader(f), None) or self.fields
+        self.f = open(self.path, "a", newline="")
+        self.w = csv.DictWriter(self.f, fieldnames=self.fields, extrasaction="ignore")
+        if new_file:
+            self.w.writeheader()
+        return self
+
+    def write(self, rows: list[dict]) -> None:
+        for row in rows:
+            self.w.writerow(row)
+        self.f.flush()
+
+    def __exit__(self, *exc):
+        self.f.close()
+
+
 def sweep(cases: list[dict], deformations, combinations, orientations=("axial",), out_csv: str = "sweep.csv", *,
           protocol: str = "paper", slice_stride: int = 1, base: CaseConfig | None = None, scheduler: str | None = None,
           workers: int = 1, progress=print) -> list[dict]:
@@ -385,55 +461,20 @@ def sweep(cases: list[dict], deformations, combinations, orientations=("axial",)
     scheduler address (``tcp://host:8786``). Rows are written here as tasks finish.
     """
     base = base or CaseConfig()
-    rows: list[dict] = []
-    if os.path.exists(out_csv):
-        with open(out_csv) as f:
-            rows = list(csv.DictReader(f))
+    rows = _read_rows(out_csv)
     done = frozenset(_row_key(r) for r in rows)
-    tasks = [(c, int(d)) for c in cases for d in deformations]
-    args = [(c, d, tuple(combinations), tuple(orientations), protocol, slice_stride, base, done) for c, d in tasks]
-    new_file = not os.path.exists(out_csv)
-    fields = SWEEP_FIELDS
-    if not new_file:  # append in the file's own column order (a CSV from an older version keeps its header)
-        with open(out_csv) as f:
-            fields = next(csv.reader(f), None) or SWEEP_FIELDS
-    with open(out_csv, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
-        if new_file:
-            w.writeheader()
+    args = [(c, int(d), tuple(combinations), tuple(orientations), protocol, slice_stride, base, done) for c in cases for d in deformations]
+    with _CsvAppender(out_csv, SWEEP_FIELDS) as out:
 
         def keep(task_rows):
+            out.write(task_rows)
             for row in task_rows:
-                w.writerow(row)
                 rows.append({k: str(v) for k, v in row.items()})
                 if progress:
                     progress(f"{row['case']} def{row['deformation']} {row['organs']} {row['orientation']}:{row['slice']} "
                              f"error {row['error_mm']:.2f} mm")
-            f.flush()
 
-        if scheduler is None and workers <= 1:
-            for a in args:
-                keep(sweep_task(*a))
-        elif scheduler is None:
-            import concurrent.futures as cf
-            import multiprocessing as mp
-
-            with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
-                for fut in cf.as_completed([ex.submit(sweep_task, *a) for a in args]):
-                    keep(fut.result())
-        else:
-            from distributed import Client, LocalCluster, as_completed
-
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) if scheduler == "local" else None
-            client = Client(cluster if cluster is not None else scheduler)
-            try:
-                futures = [client.submit(sweep_task, *a, pure=False) for a in args]
-                for fut in as_completed(futures):
-                    keep(fut.result())
-            finally:
-                client.close()
-                if cluster is not None:
-                    cluster.close()
+        run_tasks(sweep_task, args, keep, workers=workers, scheduler=scheduler)
     return rows
 
 
@@ -535,46 +576,30 @@ def multi_direction_task(case: dict, deformation: int, axial_model_path: str, pl
 
 
 def multi_direction(cases: list[dict], deformations, axial_model_path: str, plane_model_path: str, out_csv: str, *,
-                    base: CaseConfig | None = None, top: int = 3, workers: int = 1, progress=print) -> list[dict]:
-    """:func:`multi_direction_task` over cases x deformations (a local process pool with ``workers > 1``),
+                    base: CaseConfig | None = None, top: int = 3, workers: int = 1, scheduler: str | None = None,
+                    progress=print) -> list[dict]:
+    """:func:`multi_direction_task` over cases x deformations (run as :func:`sweep`'s tasks: here, in a
+    local process pool, or on Dask),
     written to ``out_csv`` as tasks finish; resumable (finished (case, deformation) pairs are skipped)."""
     from .selection import SelectionModel
 
     for path in (axial_model_path, plane_model_path):
         SelectionModel.load(path)  # fail early, naming the missing model
     base = base or CaseConfig()
-    rows: list[dict] = []
-    if os.path.exists(out_csv):
-        with open(out_csv) as f:
-            rows = list(csv.DictReader(f))
+    rows = _read_rows(out_csv)
     done = {(r["case"], str(r["deformation"])) for r in rows}
     args = [(c, int(d), axial_model_path, plane_model_path, base, top) for c in cases for d in deformations
             if (c.get("name", "case"), str(d)) not in done]
-    new_file = not os.path.exists(out_csv)
-    with open(out_csv, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=MULTI_FIELDS, extrasaction="ignore")
-        if new_file:
-            w.writeheader()
+    with _CsvAppender(out_csv, MULTI_FIELDS) as out:
 
         def keep(task_rows):
-            for row in task_rows:
-                w.writerow(row)
-                rows.append({k: str(v) for k, v in row.items()})
-            f.flush()
+            out.write(task_rows)
+            rows.extend({k: str(v) for k, v in row.items()} for row in task_rows)
             if progress and task_rows:
                 progress(f"{task_rows[0]['case']} def{task_rows[0]['deformation']}: " + ", ".join(
                     f"{r['condition']} {r['error_mm']:.2f}" for r in task_rows if r["pick"] == "top1"))
 
-        if workers <= 1:
-            for a in args:
-                keep(multi_direction_task(*a))
-        else:
-            import concurrent.futures as cf
-            import multiprocessing as mp
-
-            with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
-                for fut in cf.as_completed([ex.submit(multi_direction_task, *a) for a in args]):
-                    keep(fut.result())
+        run_tasks(multi_direction_task, args, keep, workers=workers, scheduler=scheduler)
     return rows
 
 
