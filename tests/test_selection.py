@@ -197,6 +197,16 @@ def test_run_case_slices_auto_uses_the_top_ranked_condition(tmp_path, capsys):
     assert "selected" in capsys.readouterr().out
     # a missing model is a clear error, not a traceback
     assert main(["--phantom-resolution", "3", "--slices", "auto", "--selector", str(tmp_path / "nope.json")]) == 2
+    assert main(["--phantom-resolution", "3", "--slices", "auto:as", "--selector", path]) == 2  # no --plane-selector
+    # axial + the plane model's best sagittal slice, psdl
+    pl, _ = tune_and_train(TrainingTable.from_sweep(synthetic_plane_table(4), "dice_rank"), split="row", patience=2, max_trials=3)
+    pl.save(str(tmp_path / "pl.json"))
+    (o2, k2, _), _ = pl.rank(prep.full_model, ("sagittal",), k=1)[0][0]
+    rc = main(["--phantom-resolution", "3", "--particle-step", "1", "--slices", "auto:as", "--selector", path, "--plane-selector",
+               str(tmp_path / "pl.json"), "--device", "cpu", "--no-volume-registration", "--max-steps", "800", "--json", out_json])
+    out = json.load(open(out_json))
+    assert rc == 0 and out["organs"] == "psdl" and len(out["slices"]) == 2 and out["excluded_driven"]
+    assert out["slices"][1] == f"sagittal:{k2 + prep.offset[orientation_image_axis(prep.full_model.geometry, 'sagittal')]}"
 
 
 def test_within_case_scores_ignore_case_offsets():

@@ -638,8 +638,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--phantom-resolution", type=float, default=1.0, help="phantom voxel size factor (2: 8x fewer voxels)")
     p.add_argument("--organs", default="psdl", help="organ combination: p, ps, pd, pl, psd, psl, pdl, psdl")
     p.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); "
-                   "'auto': the slice and organ combination the selection model ranks best; default: mid-pancreas axial")
+                   "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
+                   "'auto:asc': psdl, that axial slice plus the best sagittal and/or coronal slice of --plane-selector; "
+                   "default: mid-pancreas axial")
     p.add_argument("--selector", default="selection_model.json", help="trained selection model for --slices auto")
+    p.add_argument("--plane-selector", default=None, help="trained sagittal/coronal model for --slices auto:as, auto:ac, auto:asc")
     p.add_argument("--protocol", default="paper", choices=["paper", "contact"])
     p.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (also varies the contact seed)")
     p.add_argument("--targets", default="affine", choices=["affine", "gt", "registration"])
@@ -655,17 +658,39 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def auto_condition(cfg: CaseConfig, selector_path: str) -> tuple[str, str, dict]:
-    """(organs, slices) chosen by the selection model for this case, and what it reported."""
+AUTO_MODES = {"auto": "a", "auto:a": "a", "auto:ac": "ac", "auto:as": "as", "auto:asc": "asc"}
+
+
+def auto_condition(cfg: CaseConfig, selector_path: str, plane_selector_path: str | None = None) -> tuple[str, str, dict]:
+    """(organs, slices) chosen by the selection models for this case, and what they reported.
+
+    ``cfg.slices`` is ``auto`` (or ``auto:a``): the axial slice and organ combination the axial model
+    ranks best. ``auto:ac``, ``auto:as``, ``auto:asc``: organs psdl, the best psdl axial slice, plus
+    the first-ranked coronal and/or sagittal slice of the plane model (the paper's second model).
+    """
     from .selection import SelectionModel
 
+    mode = AUTO_MODES.get(cfg.slices)
+    if mode is None:
+        raise InputError(f"unknown --slices {cfg.slices!r}; use one of {', '.join(AUTO_MODES)}")
+    if mode != "a" and not plane_selector_path:
+        raise InputError(f"--slices {cfg.slices} needs --plane-selector (the sagittal/coronal model)")
     sel = SelectionModel.load(selector_path)
+    plane = SelectionModel.load(plane_selector_path) if mode != "a" else None
     prep = prepare_case(replace(cfg, slices=None, organs="p"))
-    ranked, wall = sel.rank(prep.full_model, k=5)
+    geom = prep.full_model.geometry
+    ranked, wall = sel.rank(prep.full_model, k=5, combinations=None if mode == "a" else ("psdl",))
     (orientation, k, combo), pred = ranked[0]
-    axis = orientation_image_axis(prep.full_model.geometry, orientation)
+    chosen = [(orientation, k)]
     info = {"selection_ms": wall * 1e3, "predicted": pred, "top": [[list(key), p] for key, p in ranked]}
-    return combo, f"{orientation}:{k + prep.offset[axis]}", info
+    for letter, o in (("s", "sagittal"), ("c", "coronal")):
+        if letter in mode:
+            top, w = plane.rank(prep.full_model, (o,), combinations=("psdl",), k=3)
+            chosen.append(top[0][0][:2])
+            info["selection_ms"] += w * 1e3
+            info[f"top_{o}"] = [[list(key), p] for key, p in top]
+    slices = ",".join(f"{o}:{k + prep.offset[orientation_image_axis(geom, o)]}" for o, k in chosen)
+    return combo, slices, info
 
 
 def config_from_args(a) -> CaseConfig:
@@ -690,8 +715,8 @@ def main(argv=None) -> int:
             if not os.path.isdir(d):
                 raise InputError(f"output folder {d} for --rrd does not exist")
         selection = None
-        if cfg.slices == "auto":
-            organs, slices, selection = auto_condition(cfg, a.selector)
+        if cfg.slices is not None and cfg.slices.startswith("auto"):
+            organs, slices, selection = auto_condition(cfg, a.selector, a.plane_selector)
             cfg = replace(cfg, organs=organs, slices=slices)
         out = run_case(cfg, rrd=a.rrd)
         if selection is not None:
