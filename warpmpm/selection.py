@@ -1,13 +1,18 @@
 """Choosing the driving slice and organ combination: the condition-selection regression.
 
-Rows are conditions (case, orientation, slice, combination). Features, as the paper's: the slice
-position and, per organ, the number of its particles on that slice (0 when the organ is not in the
-combination), each standardised per case (z-score over that case's candidate rows). The target is
-the estimate's error (or Dice) averaged over the 8 paper deformations, from a brute-force sweep.
+Rows are conditions (case, orientation, slice, combination). The paper's first model (axial slices):
+features are the slice position and, per organ, the number of its particles on that slice (0 when
+the organ is not in the combination), standardised per case (z-score over that case's candidate
+rows); the target is the estimate's error (or Dice) averaged over the 8 paper deformations, from a
+brute-force sweep. Its second model (sagittal and coronal slices, psdl, GT targets): features are the
+particle counts only, the target the percentile rank of the mean Dice among the slices of the same
+case and orientation (``target="dice_rank"``); the top 3 slices are the candidates.
 
 An XGBoost regressor (native API) is tuned by Optuna with 5-fold cross-validation, stopping after
 ``patience`` trials without a better mean R2; the study can live in SQLite so tuning resumes or is
-shared. The model saves as XGBoost JSON plus a small JSON of its feature definition.
+shared. The model saves as XGBoost JSON plus a small JSON of its features, target, orientations and
+combinations. :func:`regret` scores a model by what choosing with it costs against the brute-force
+best; :func:`baseline_regret` gives the same for choices made without it.
 """
 
 from __future__ import annotations
