@@ -154,6 +154,7 @@ def test_multi_direction_protocol_on_tiny_phantom(tmp_path, tiny_case):
     for c in ("ac", "as", "asc"):  # (one axial slice alone may do worse than no motion when the slice is poor)
         assert by[c]["error_mm"] < by[c]["initial_error_mm"]
     assert by["asc"]["error_mm"] < by["a"]["error_mm"]
+    assert all(np.isfinite(r["volume_registration_error_mm"]) for r in rows)
     assert "axial + sagittal + coronal" in summarize_multi(rows)
 
 
