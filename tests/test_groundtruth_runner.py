@@ -171,3 +171,33 @@ def test_empty_slice_refused_before_any_simulation(tmp_path, capsys, monkeypatch
     code = main(["--phantom-resolution", "3", "--device", "cpu", "--slices", "axial:0", "--json", str(tmp_path / "r.json")])
     assert code == 2 and "holds no particle" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def _maybe_diverge(i):
+    from warpmpm.solver import SimulationError
+
+    if i == 1:
+        raise SimulationError("non-finite value (NaN/Inf) at step 3")
+    return [i]
+
+
+def test_a_failed_task_does_not_lose_the_others(capsys):
+    from warpmpm.runner import run_tasks
+
+    got = []
+    failed = run_tasks(_maybe_diverge, [(0,), (1,), (2,)], got.extend)
+    assert got == [0, 2] and len(failed) == 1 and failed[0][0] == (1,) and "NaN" in failed[0][1]
+    assert "failed" in capsys.readouterr().err
+
+
+def test_failed_simulations_leave_their_condition_out():
+    from warpmpm.selection import TrainingTable
+
+    rows = []
+    for k in range(3):
+        for d in (1, 2):
+            err = "nan" if (k == 1 and d == 2) else str(1.0 + k)
+            rows.append({"case": "c", "orientation": "axial", "slice": str(k), "organs": "p", "deformation": str(d),
+                         "error_mm": err, "count_pancreas": "5", "count_stomach": "0", "count_duodenum": "0", "count_left_kidney": "0"})
+    table = TrainingTable.from_sweep(rows)
+    assert [k[2] for k in table.keys] == [0, 2]  # slice 1 diverged once: left out, the case kept

@@ -323,7 +323,7 @@ def _json_default(o):
 SWEEP_FIELDS = ["case", "protocol", "deformation", "organs", "orientation", "slice", "targets", "excluded_driven", "n_driven", "n_pancreas",
                 "error_mm", "p95_mm", "dice", "steps", "wall_s", "converged",
                 "initial_error_mm", "initial_dice", "propagate_error_mm", "propagate_dice",
-                "count_pancreas", "count_stomach", "count_duodenum", "count_left_kidney"]
+                "count_pancreas", "count_stomach", "count_duodenum", "count_left_kidney", "failure"]
 
 
 def _row_key(r) -> tuple:
@@ -358,9 +358,16 @@ def sweep_task(case: dict, deformation: int, combinations, orientations, protoco
                     continue
                 if gt is None:
                     gt = make_ground_truth(prep, cfg0)
-                out = run_prepared(prep, gt, replace(cfg0, organs=combo, slices=f"{orientation}:{k_in}"))
-                r = out["results"]
                 on = {o: int(counts[k, i]) for i, o in enumerate(prep.full_model.organs)}
+                try:
+                    out = run_prepared(prep, gt, replace(cfg0, organs=combo, slices=f"{orientation}:{k_in}"))
+                except SimulationError as exc:  # keep the row (so a re-run does not retry it) and go on
+                    rows.append({"case": name, "protocol": protocol, "deformation": int(deformation), "organs": combo,
+                                 "orientation": orientation, "slice": k_in, "targets": cfg0.targets, "error_mm": float("nan"),
+                                 "dice": float("nan"), "converged": False, "failure": str(exc),
+                                 **{f"count_{o}": (on.get(o, 0) if o in organs else 0) for o in ORGANS}})
+                    continue
+                r = out["results"]
                 rows.append({"case": name, "protocol": protocol, "deformation": int(deformation), "organs": combo,
                              "orientation": orientation, "slice": k_in, "targets": cfg0.targets,
                              "excluded_driven": out["excluded_driven"], "n_driven": out["n_driven"],
@@ -385,35 +392,61 @@ def sweep_cases(labels: str | None, image: str | None, preset: str, phantom_seed
     return [{"name": f"phantom{s}", "phantom_seed": s, "phantom_resolution": phantom_resolution} for s in seeds]
 
 
-def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: str | None = None) -> None:
+def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: str | None = None) -> list[tuple]:
     """Call ``fn(*a)`` for every ``a`` in ``args`` and hand each result to ``on_result`` as it finishes.
 
     ``scheduler=None``: here (``workers <= 1``) or in a local process pool of ``workers`` (spawned,
     so each process initialises Warp itself); ``"local"``: a Dask ``LocalCluster`` of ``workers``
-    single-threaded processes; any other value: the address of a running Dask scheduler.
+    single-threaded processes; any other value: the address of a running Dask scheduler. A task that
+    raises does not stop the others: it is reported on stderr and returned as ``(args, message)``.
     """
+    failed: list[tuple] = []
+
+    def fail(a, exc):
+        msg = f"{type(exc).__name__}: {exc}"
+        print(f"task {a[:2]} failed: {msg}", file=sys.stderr)
+        failed.append((a, msg))
+
     if scheduler is None and workers <= 1:
         for a in args:
-            on_result(fn(*a))
+            try:
+                result = fn(*a)
+            except (SimulationError, InputError) as exc:
+                fail(a, exc)
+                continue
+            on_result(result)
     elif scheduler is None:
         import concurrent.futures as cf
         import multiprocessing as mp
 
         with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
-            for fut in cf.as_completed([ex.submit(fn, *a) for a in args]):
-                on_result(fut.result())
+            futures = {ex.submit(fn, *a): a for a in args}
+            for fut in cf.as_completed(futures):
+                try:
+                    result = fut.result()
+                except Exception as exc:  # noqa: BLE001 - a worker's error must not lose the other tasks' rows
+                    fail(futures[fut], exc)
+                    continue
+                on_result(result)
     else:
         from distributed import Client, LocalCluster, as_completed
 
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) if scheduler == "local" else None
         client = Client(cluster if cluster is not None else scheduler)
         try:
-            for fut in as_completed([client.submit(fn, *a, pure=False) for a in args]):
-                on_result(fut.result())
+            futures = {client.submit(fn, *a, pure=False): a for a in args}
+            for fut in as_completed(list(futures)):
+                try:
+                    result = fut.result()
+                except Exception as exc:  # noqa: BLE001
+                    fail(futures[fut], exc)
+                    continue
+                on_result(result)
         finally:
             client.close()
             if cluster is not None:
                 cluster.close()
+    return failed
 
 
 def _read_rows(path: str) -> list[dict]:
@@ -474,7 +507,10 @@ def sweep(cases: list[dict], deformations, combinations, orientations=("axial",)
                     progress(f"{row['case']} def{row['deformation']} {row['organs']} {row['orientation']}:{row['slice']} "
                              f"error {row['error_mm']:.2f} mm")
 
-        run_tasks(sweep_task, args, keep, workers=workers, scheduler=scheduler)
+        failed = run_tasks(sweep_task, args, keep, workers=workers, scheduler=scheduler)
+    if failed:
+        print(f"{len(failed)} of {len(args)} tasks failed (re-run to retry them): "
+              + "; ".join(f"{a[0].get('name', 'case')} def{a[1]}: {m}" for a, m in failed), file=sys.stderr)
     return rows
 
 
@@ -608,7 +644,10 @@ def multi_direction(cases: list[dict], deformations, axial_model_path: str, plan
                 progress(f"{task_rows[0]['case']} def{task_rows[0]['deformation']}: " + ", ".join(
                     f"{r['condition']} {r['error_mm']:.2f}" for r in task_rows if r["pick"] == "top1"))
 
-        run_tasks(multi_direction_task, args, keep, workers=workers, scheduler=scheduler)
+        failed = run_tasks(multi_direction_task, args, keep, workers=workers, scheduler=scheduler)
+    if failed:
+        print(f"{len(failed)} of {len(args)} tasks failed (re-run to retry them): "
+              + "; ".join(f"{a[0].get('name', 'case')} def{a[1]}: {m}" for a, m in failed), file=sys.stderr)
     return rows
 
 

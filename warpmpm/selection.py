@@ -116,7 +116,8 @@ class TrainingTable:
         ``target``: ``error_mm`` or ``dice`` (the paper's first model: slice position and counts), or
         ``dice_rank`` (its second model, for sagittal and coronal slices: counts only; the target is the
         percentile rank of the mean Dice among the slices of the same case and orientation, 1 = best).
-        ``orientations`` / ``combinations``: keep only these rows. ``complete_only``: drop the cases
+        ``orientations`` / ``combinations``: keep only these rows. A condition with a failed
+        simulation (non-finite metric) is left out whole. ``complete_only``: drop the cases
         where some condition has fewer deformations than the most complete condition (an interrupted
         sweep), so that every target is a mean over the same deformations.
         """
@@ -126,15 +127,20 @@ class TrainingTable:
         metric = "dice" if target == "dice_rank" else target
         groups: dict[tuple, list] = {}
         feats: dict[tuple, list[float]] = {}
+        failed: set[tuple] = set()
         for r in rows:
             if orientations is not None and r["orientation"] not in orientations:
                 continue
             if combinations is not None and r["organs"] not in combinations:
                 continue
             key = (r["case"], r["orientation"], int(float(r["slice"])), r["organs"])
-            groups.setdefault(key, []).append(float(r[metric]))
+            v = float(r[metric]) if r.get(metric) not in (None, "") else float("nan")
+            if not np.isfinite(v):  # a simulation that failed (diverged): the condition is left out
+                failed.add(key)
+            groups.setdefault(key, []).append(v)
             counts = {o: int(float(r[f"count_{o}"])) for o in ORGANS}
             feats[key] = raw_features(int(float(r["slice"])), counts, r["organs"], features)
+        groups = {k: v for k, v in groups.items() if k not in failed}
         if groups and complete_only:
             full = max(len(v) for v in groups.values())
             partial = {k[0] for k, v in groups.items() if len(v) < full}
