@@ -201,3 +201,17 @@ def test_failed_simulations_leave_their_condition_out():
                          "error_mm": err, "count_pancreas": "5", "count_stomach": "0", "count_duodenum": "0", "count_left_kidney": "0"})
     table = TrainingTable.from_sweep(rows)
     assert [k[2] for k in table.keys] == [0, 2]  # slice 1 diverged once: left out, the case kept
+
+
+def test_paper_gt_that_diverged_at_the_estimators_cfl_now_converges():
+    """Regression: this GT (every particle driven) gave NaN at step 1730 when it ran at CFL 0.5."""
+    import numpy as np
+
+    from warpmpm.runner import CaseConfig, make_ground_truth, prepare_case
+
+    cfg = CaseConfig(phantom_resolution=3.0, phantom_seed=8, deformation=8, device="cpu")
+    gt = make_ground_truth(prepare_case(cfg), cfg)
+    assert np.all(np.isfinite(gt.positions_mm)) and gt.converged
+    sol = gt.params["solver"]
+    assert sol["dt_s"] <= sol["dt_limit_s"] * 0.3 / 0.6 * (1 + 1e-9)  # CFL 0.3 (the limit is CFL 0.6)
+    assert gt.params["gt_rms_residual_mm"] < 1.5
