@@ -449,6 +449,13 @@ def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: 
     return failed
 
 
+def _report_failures(failed: list[tuple], n_tasks: int) -> None:
+    """One stderr line naming the (case, deformation) tasks that failed and why."""
+    if failed:
+        print(f"{len(failed)} of {n_tasks} tasks failed (re-run to retry them): "
+              + "; ".join(f"{a[0].get('name', 'case')} def{a[1]}: {m}" for a, m in failed), file=sys.stderr)
+
+
 def _read_rows(path: str) -> list[dict]:
     if not os.path.exists(path):
         return []
@@ -507,10 +514,7 @@ def sweep(cases: list[dict], deformations, combinations, orientations=("axial",)
                     progress(f"{row['case']} def{row['deformation']} {row['organs']} {row['orientation']}:{row['slice']} "
                              f"error {row['error_mm']:.2f} mm")
 
-        failed = run_tasks(sweep_task, args, keep, workers=workers, scheduler=scheduler)
-    if failed:
-        print(f"{len(failed)} of {len(args)} tasks failed (re-run to retry them): "
-              + "; ".join(f"{a[0].get('name', 'case')} def{a[1]}: {m}" for a, m in failed), file=sys.stderr)
+        _report_failures(run_tasks(sweep_task, args, keep, workers=workers, scheduler=scheduler), len(args))
     return rows
 
 
@@ -644,10 +648,7 @@ def multi_direction(cases: list[dict], deformations, axial_model_path: str, plan
                 progress(f"{task_rows[0]['case']} def{task_rows[0]['deformation']}: " + ", ".join(
                     f"{r['condition']} {r['error_mm']:.2f}" for r in task_rows if r["pick"] == "top1"))
 
-        failed = run_tasks(multi_direction_task, args, keep, workers=workers, scheduler=scheduler)
-    if failed:
-        print(f"{len(failed)} of {len(args)} tasks failed (re-run to retry them): "
-              + "; ".join(f"{a[0].get('name', 'case')} def{a[1]}: {m}" for a, m in failed), file=sys.stderr)
+        _report_failures(run_tasks(multi_direction_task, args, keep, workers=workers, scheduler=scheduler), len(args))
     return rows
 
 
