@@ -105,7 +105,7 @@ class TrainingTable:
     @property
     def groups(self) -> np.ndarray:
         """(case, orientation) of every row as one string: the unit of standardisation, ranking and regret."""
-        return np.array([f"{k[0]}|{k[1]}" for k in self.keys])
+        return _group_labels(self.keys)
 
     @staticmethod
     def from_sweep(rows: list[dict], target: str = "error_mm", orientations=None, combinations=None,
@@ -152,13 +152,17 @@ class TrainingTable:
         X = np.asarray([feats[k] for k in keys], dtype=np.float64)
         value = np.array([np.mean(groups[k]) for k in keys])
         y = value.copy()
-        unit = np.array([f"{k[0]}|{k[1]}" for k in keys])
+        unit = _group_labels(keys)
         for g in np.unique(unit):
             sel = unit == g
             X[sel] = standardise(X[sel])
             if target == "dice_rank":
                 y[sel] = percentile_rank(value[sel])
         return TrainingTable(X, y, cases, keys, target, features, value)
+
+
+def _group_labels(keys: list[tuple]) -> np.ndarray:
+    return np.array([f"{k[0]}|{k[1]}" for k in keys])
 
 
 def percentile_rank(v: np.ndarray) -> np.ndarray:
@@ -353,6 +357,23 @@ def within_group_scores(table: TrainingTable, pred: np.ndarray, mask: np.ndarray
     return {"test_within_case_r2": r2_score(yc, pc), "test_spearman": float(np.mean(rho)) if rho else float("nan")}
 
 
+def _regret_groups(table: TrainingTable, mask: np.ndarray | None):
+    """(name, row mask, values) per (case, orientation) group in ``mask``; names are ``case`` when the
+    table has one orientation, else ``case|orientation``."""
+    mask = np.ones(len(table.y), dtype=bool) if mask is None else mask
+    value = table.value if table.value is not None else table.y
+    groups = table.groups
+    one_orientation = len({k[1] for k in table.keys}) == 1
+    for g in np.unique(groups[mask]):
+        sel = mask & (groups == g)
+        yield (g.split("|")[0] if one_orientation else g), sel, value[sel]
+
+
+def _shortfall(table: TrainingTable, chosen: float, values: np.ndarray) -> float:
+    """How much worse ``chosen`` is than the best of ``values`` (>= 0, in the metric's unit)."""
+    return float(chosen - values.min()) if table.target not in HIGHER_IS_BETTER else float(values.max() - chosen)
+
+
 def regret(table: TrainingTable, model: SelectionModel, mask: np.ndarray | None = None, top: int = 1) -> dict[str, float]:
     """Per (case, orientation) group: how much worse the predicted-best condition is than the brute-force
     best, in the measured metric's unit (mm for error, Dice points for Dice; >= 0).
@@ -360,19 +381,12 @@ def regret(table: TrainingTable, model: SelectionModel, mask: np.ndarray | None 
     ``top > 1``: the best of the ``top`` predicted conditions (the paper tries the top 3 sagittal and
     coronal slices). Groups are named ``case`` when the table has one orientation, else ``case|orientation``.
     """
-    mask = np.ones(len(table.y), dtype=bool) if mask is None else mask
-    value = table.value if table.value is not None else table.y
-    groups = table.groups
-    one_orientation = len({k[1] for k in table.keys}) == 1
     lower = table.target not in HIGHER_IS_BETTER
     out = {}
-    for g in np.unique(groups[mask]):
-        sel = mask & (groups == g)
+    for name, sel, v in _regret_groups(table, mask):
         pred = model.predict(table.X[sel])
-        v = value[sel]
-        picked = np.argsort(pred if model.lower_is_better else -pred, kind="stable")[:top]
-        name = g.split("|")[0] if one_orientation else g
-        out[name] = float(v[picked].min() - v.min()) if lower else float(v.max() - v[picked].max())
+        picked = v[np.argsort(pred if model.lower_is_better else -pred, kind="stable")[:top]]
+        out[name] = _shortfall(table, picked.min() if lower else picked.max(), v)
     return out
 
 
@@ -385,30 +399,21 @@ def baseline_regret(table: TrainingTable, rule: str, mask: np.ndarray | None = N
     """
     if rule not in ("random", "middle", "max_pancreas"):
         raise InputError(f"unknown baseline rule {rule!r}; use random, middle or max_pancreas")
-    mask = np.ones(len(table.y), dtype=bool) if mask is None else mask
-    value = table.value if table.value is not None else table.y
-    lower = table.target not in HIGHER_IS_BETTER
-    groups = table.groups
-    one_orientation = len({k[1] for k in table.keys}) == 1
     combo = np.array([k[3] for k in table.keys])
     slices = np.array([k[2] for k in table.keys])
     n_pan = table.X[:, table.features.index("n_pancreas")]  # standardised within the group: same order as the counts
     out = {}
-    for g in np.unique(groups[mask]):
-        sel = mask & (groups == g)
-        v = value[sel]
-        best = v.min() if lower else v.max()
+    for name, sel, v in _regret_groups(table, mask):
         if rule == "random":
-            pick = v.mean()
+            out[name] = _shortfall(table, v.mean(), v)
+            continue
+        own = sel[sel] & (combo[sel] == combination)
+        if not own.any():
+            continue
+        if rule == "middle":
+            ks = slices[sel][own]
+            i = np.argmin(np.abs(ks - np.median(ks)))
         else:
-            own = sel & (combo == combination)
-            if not own.any():
-                continue
-            if rule == "middle":
-                ks = slices[own]
-                i = np.argmin(np.abs(ks - np.median(ks)))
-            else:
-                i = np.argmax(n_pan[own])
-            pick = value[own][i]
-        out[g.split("|")[0] if one_orientation else g] = float(pick - best) if lower else float(best - pick)
+            i = np.argmax(n_pan[sel][own])
+        out[name] = _shortfall(table, v[own][i], v)
     return out
