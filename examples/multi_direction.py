@@ -16,28 +16,20 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from warpmpm.images import InputError  # noqa: E402
-from warpmpm.runner import CaseConfig, multi_direction, summarize_multi, sweep_cases  # noqa: E402
+from warpmpm.runner import CaseConfig, add_sweep_arguments, multi_direction, summarize_multi, sweep_cases  # noqa: E402
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--axial-model", required=True, help="axial selection model (error_mm target)")
     p.add_argument("--plane-model", required=True, help="sagittal/coronal Dice-rank model")
-    p.add_argument("--labels")
-    p.add_argument("--image")
-    p.add_argument("--preset", default="amos")
-    p.add_argument("--phantom-seeds", default="0", help="comma-separated phantom seeds when no --labels")
-    p.add_argument("--phantom-resolution", type=float, default=3.0)
-    p.add_argument("--particle-step", type=int, default=1)
-    p.add_argument("--deformations", default="1,2,3,4,5,6,7,8")
-    p.add_argument("--protocol", default="paper", choices=["paper", "contact"])
+    add_sweep_arguments(p, phantom_resolution=3.0)
     p.add_argument("--top", type=int, default=3, help="sagittal and coronal candidates tried")
-    p.add_argument("--device", default=None)
     p.add_argument("--out", default="runs/multi.csv")
-    p.add_argument("--workers", type=int, default=1, help="parallel tasks (one per case x deformation)")
-    p.add_argument("--scheduler", default=None, help="'local' for a Dask LocalCluster of --workers, or a Dask scheduler address")
     a = p.parse_args(argv)
     try:
+        if a.top < 1:
+            raise InputError(f"--top must be at least 1, got {a.top}")
         cases = sweep_cases(a.labels, a.image, a.preset, a.phantom_seeds, a.phantom_resolution)
         d = os.path.dirname(os.path.abspath(a.out))
         if not os.path.isdir(d):

@@ -14,32 +14,24 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from warpmpm.images import InputError  # noqa: E402
-from warpmpm.runner import COMBINATIONS, CaseConfig, summarize, sweep, sweep_cases  # noqa: E402
+from warpmpm.runner import COMBINATIONS, CaseConfig, add_sweep_arguments, summarize, sweep, sweep_cases  # noqa: E402
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--labels")
-    p.add_argument("--image")
-    p.add_argument("--preset", default="amos")
-    p.add_argument("--phantom-seeds", default="0", help="comma-separated phantom seeds when no --labels")
-    p.add_argument("--phantom-resolution", type=float, default=2.0)
-    p.add_argument("--particle-step", type=int, default=1)
+    add_sweep_arguments(p, phantom_resolution=2.0)
     p.add_argument("--organs", default="psdl", help="comma-separated combinations, or 'all'")
-    p.add_argument("--deformations", default="1,2,3,4,5,6,7,8")
     p.add_argument("--orientations", default="axial")
-    p.add_argument("--protocol", default="paper", choices=["paper", "contact"])
     p.add_argument("--targets", default="affine", choices=["affine", "gt", "registration"])
     p.add_argument("--exclude-driven", action="store_true",
                    help="leave the driven particles out of the metrics (the multi-direction protocol's rule; default: only with several slices)")
     p.add_argument("--slice-stride", type=int, default=1)
     p.add_argument("--max-steps", type=int, default=6000, help="steps per estimate before it is reported not converged")
-    p.add_argument("--device", default=None)
     p.add_argument("--out", default="runs/sweep.csv")
-    p.add_argument("--workers", type=int, default=1, help="parallel tasks (one per case x deformation)")
-    p.add_argument("--scheduler", default=None, help="'local' for a Dask LocalCluster of --workers, or a Dask scheduler address")
     a = p.parse_args(argv)
     try:
+        if a.slice_stride < 1:
+            raise InputError(f"--slice-stride must be at least 1, got {a.slice_stride}")
         cases = sweep_cases(a.labels, a.image, a.preset, a.phantom_seeds, a.phantom_resolution)
         combos = COMBINATIONS if a.organs == "all" else tuple(a.organs.split(","))
         os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)

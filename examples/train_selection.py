@@ -68,6 +68,9 @@ def main(argv=None):
         orientations = tuple(a.orientations.split(",")) if a.orientations else (
             ("sagittal", "coronal") if a.target == "dice_rank" else ("axial",))
         table = TrainingTable.from_sweep(rows, a.target, orientations=orientations)
+        for out_path in (a.out, a.report):
+            if out_path and not os.path.isdir(os.path.dirname(os.path.abspath(out_path))):
+                raise InputError(f"output folder {os.path.dirname(os.path.abspath(out_path))} does not exist")
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

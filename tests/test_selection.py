@@ -1,6 +1,7 @@
 """Issue 7: features, the regressor, save/load, and the Dask sweep path."""
 
 import csv
+import os
 
 import numpy as np
 import pytest
@@ -220,3 +221,33 @@ def test_within_case_scores_ignore_case_offsets():
     assert s["test_within_case_r2"] == pytest.approx(1.0) and s["test_spearman"] == pytest.approx(1.0)
     s = within_group_scores(table, -table.y, mask)
     assert s["test_spearman"] == pytest.approx(-1.0)
+
+
+
+def test_bad_selection_cli_values_are_clear_errors(tmp_path):
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+    def run(script, *args):
+        return subprocess.run([sys.executable, os.path.join(root, "examples", script), *args], capture_output=True, text=True, cwd=tmp_path)
+
+    r = run("train_selection.py", str(tmp_path / "missing.csv"))
+    assert r.returncode == 2 and "missing.csv not found" in r.stderr
+    r = run("sweep.py", "--slice-stride", "0", "--out", str(tmp_path / "s.csv"))
+    assert r.returncode == 2 and "--slice-stride" in r.stderr and not (tmp_path / "s.csv").exists()
+    r = run("multi_direction.py", "--axial-model", "a.json", "--plane-model", "p.json", "--top", "0")
+    assert r.returncode == 2 and "--top" in r.stderr
+    r = run("multi_direction.py", "--axial-model", "a.json", "--plane-model", "p.json", "--out", str(tmp_path / "m.csv"))
+    assert r.returncode == 2 and "a.json" in r.stderr and not (tmp_path / "m.csv").exists()
+
+
+def test_model_save_to_a_missing_folder_writes_nothing(tmp_path):
+    from warpmpm.images import InputError
+
+    model, _ = tune_and_train(TrainingTable.from_sweep(synthetic_table(3)), split="row", patience=1, max_trials=2)
+    with pytest.raises(InputError, match="does not exist"):
+        model.save(str(tmp_path / "nope" / "m.json"))
+    model.save(str(tmp_path / "m.json"))
+    assert sorted(os.listdir(tmp_path)) == ["m.json", "m.json.meta.json"]

@@ -359,25 +359,37 @@ def sweep_task(case: dict, deformation: int, combinations, orientations, protoco
                 if gt is None:
                     gt = make_ground_truth(prep, cfg0)
                 on = {o: int(counts[k, i]) for i, o in enumerate(prep.full_model.organs)}
+                row = {"case": name, "protocol": protocol, "deformation": int(deformation), "organs": combo,
+                       "orientation": orientation, "slice": k_in, "targets": cfg0.targets,
+                       **{f"count_{o}": (on.get(o, 0) if o in organs else 0) for o in ORGANS}}
                 try:
                     out = run_prepared(prep, gt, replace(cfg0, organs=combo, slices=f"{orientation}:{k_in}"))
                 except SimulationError as exc:  # keep the row (so a re-run does not retry it) and go on
-                    rows.append({"case": name, "protocol": protocol, "deformation": int(deformation), "organs": combo,
-                                 "orientation": orientation, "slice": k_in, "targets": cfg0.targets, "error_mm": float("nan"),
-                                 "dice": float("nan"), "converged": False, "failure": str(exc),
-                                 **{f"count_{o}": (on.get(o, 0) if o in organs else 0) for o in ORGANS}})
+                    rows.append(row | {"error_mm": float("nan"), "dice": float("nan"), "converged": False, "failure": str(exc)})
                     continue
                 r = out["results"]
-                rows.append({"case": name, "protocol": protocol, "deformation": int(deformation), "organs": combo,
-                             "orientation": orientation, "slice": k_in, "targets": cfg0.targets,
-                             "excluded_driven": out["excluded_driven"], "n_driven": out["n_driven"],
+                rows.append(row | {"excluded_driven": out["excluded_driven"], "n_driven": out["n_driven"],
                              "n_pancreas": out["n_particles"]["pancreas"], "error_mm": r["estimate"]["error_mm"],
                              "p95_mm": r["estimate"]["p95_mm"], "dice": r["estimate"]["dice"], "steps": r["estimate"]["steps"],
                              "wall_s": r["estimate"]["wall_s"], "converged": r["estimate"]["converged"],
                              "initial_error_mm": r["initial"]["error_mm"], "initial_dice": r["initial"]["dice"],
-                             "propagate_error_mm": r["propagate"]["error_mm"], "propagate_dice": r["propagate"]["dice"],
-                             **{f"count_{o}": (on.get(o, 0) if o in organs else 0) for o in ORGANS}})
+                             "propagate_error_mm": r["propagate"]["error_mm"], "propagate_dice": r["propagate"]["dice"]})
     return rows
+
+
+def add_sweep_arguments(p: argparse.ArgumentParser, phantom_resolution: float) -> None:
+    """The case and task options shared by ``examples/sweep.py`` and ``examples/multi_direction.py``."""
+    p.add_argument("--labels", help="label map of one real case (default: phantoms)")
+    p.add_argument("--image")
+    p.add_argument("--preset", default="amos")
+    p.add_argument("--phantom-seeds", default="0", help="comma-separated phantom seeds when no --labels")
+    p.add_argument("--phantom-resolution", type=float, default=phantom_resolution)
+    p.add_argument("--particle-step", type=int, default=1)
+    p.add_argument("--deformations", default="1,2,3,4,5,6,7,8")
+    p.add_argument("--protocol", default="paper", choices=["paper", "contact"])
+    p.add_argument("--device", default=None)
+    p.add_argument("--workers", type=int, default=1, help="parallel tasks (one per case x deformation)")
+    p.add_argument("--scheduler", default=None, help="'local' for a Dask LocalCluster of --workers, or a Dask scheduler address")
 
 
 def sweep_cases(labels: str | None, image: str | None, preset: str, phantom_seeds: str, phantom_resolution: float) -> list[dict]:

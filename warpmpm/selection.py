@@ -216,12 +216,20 @@ class SelectionModel:
         return self.target not in HIGHER_IS_BETTER
 
     def save(self, path: str) -> None:
-        """``path`` (XGBoost JSON) and ``path + '.meta.json'`` (features, target, standardisation)."""
-        self.booster.save_model(path)
-        with open(path + ".meta.json", "w") as f:
+        """``path`` (XGBoost JSON) and ``path + '.meta.json'`` (features, target, standardisation).
+
+        Both are written beside their final names and renamed only when both are complete."""
+        folder = os.path.dirname(os.path.abspath(path))
+        if not os.path.isdir(folder):
+            raise InputError(f"output folder {folder} for the selection model does not exist")
+        tmp_model, tmp_meta = path + ".part.json", path + ".meta.part.json"  # XGBoost picks the format from ".json"
+        self.booster.save_model(tmp_model)
+        with open(tmp_meta, "w") as f:
             json.dump({"target": self.target, "features": list(self.features), "standardisation": "per-(case, orientation) z-score",
                        "combinations": list(self.combinations), "orientations": list(self.orientations),
                        "params": self.params}, f, indent=1)
+        os.replace(tmp_model, path)
+        os.replace(tmp_meta, path + ".meta.json")
 
     @staticmethod
     def load(path: str) -> "SelectionModel":
