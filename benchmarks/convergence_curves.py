@@ -20,9 +20,11 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 import warp as wp  # noqa: E402
 
-from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator, affine_targets  # noqa: E402
+from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
+from warpmpm.slices import InPlaneAffine  # noqa: E402
+from warpmpm.targets import affine_targets  # noqa: E402
 from warpmpm.groundtruth import paper_affine, paper_ground_truth  # noqa: E402
-from warpmpm.runner import CaseConfig, prepare_case, resolve_slices  # noqa: E402
+from warpmpm.experiment import CaseConfig, prepare_case  # noqa: E402
 from warpmpm.solver import SolverConfig  # noqa: E402
 
 SETTINGS = [(0.3, 1.0), (0.3, 2.0), (0.3, 4.0), (0.3, 8.0), (0.5, 4.0)]  # (CFL, damping factor)
@@ -38,12 +40,12 @@ def main(argv=None):
     wp.config.quiet = True
     prep = prepare_case(CaseConfig(particle_step=2, device="cpu"))
     model = prep.full_model
-    sl = resolve_slices(prep, model, None)
+    sl = prep.resolve_slices(model, None)
     pan = model.organ_slice("pancreas")
     curves = {}
     for d in [int(x) for x in a.deformations.split(",")]:
-        gt = paper_ground_truth(model, d, centre_mm=prep.input_centre_mm, device="cpu")
-        _, tg = affine_targets(model, model.positions_mm, sl, [(paper_affine(d), np.zeros(2))], prep.input_centre_mm)
+        gt = paper_ground_truth(model, d, centre_mm=prep.centre_mm, device="cpu")
+        _, tg = affine_targets(model, model.positions_mm, sl, [InPlaneAffine(paper_affine(d))], prep.centre_mm)
         for cfl, factor in SETTINGS:
             pts = []
 

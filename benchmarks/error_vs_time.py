@@ -26,10 +26,12 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 import warp as wp  # noqa: E402
 
-from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator, affine_targets  # noqa: E402
+from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
+from warpmpm.slices import InPlaneAffine, in_plane_axes  # noqa: E402
+from warpmpm.targets import affine_targets  # noqa: E402
 from warpmpm.groundtruth import paper_affine, paper_ground_truth  # noqa: E402
 from warpmpm.metrics import evaluate  # noqa: E402
-from warpmpm.runner import CaseConfig, prepare_case, resolve_slices  # noqa: E402
+from warpmpm.experiment import CaseConfig, prepare_case  # noqa: E402
 from warpmpm.solver import SolverConfig  # noqa: E402
 
 
@@ -42,9 +44,9 @@ def frame(prep, gt, organs, step, ppc, th_d, device, legacy=False):
     model = prep.full_model.subset(organs)
     keep = np.isin(gt.model.organ_index, [gt.model.organs.index(o) for o in model.organs])
     gt_pos = gt.positions_mm[keep]
-    sl = resolve_slices(prep, model, None)
+    sl = prep.resolve_slices(model, None)
     A = paper_affine(gt.params["deformation"])
-    idx, tg = affine_targets(model, model.positions_mm, sl, [(A, np.zeros(2))], prep.input_centre_mm)
+    idx, tg = affine_targets(model, model.positions_mm, sl, [InPlaneAffine(A)], prep.centre_mm)
     extra = LEGACY if legacy else {}
     est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(particles_per_cell=ppc, device=device, **extra),
                                convergence=ConvergenceConfig(th_d=th_d), extra_points_mm=np.vstack([tg, gt_pos]))
@@ -59,7 +61,7 @@ def sweep_knobs(a, device):
         base = CaseConfig(labels=a.labels, image=a.image, preset=a.preset, phantom_resolution=a.phantom_resolution,
                           particle_step=step, device=device)
         prep = prepare_case(base)
-        gts = {d: paper_ground_truth(prep.full_model, d, centre_mm=prep.input_centre_mm, device=device)
+        gts = {d: paper_ground_truth(prep.full_model, d, centre_mm=prep.centre_mm, device=device)
                for d in [int(x) for x in a.deformations.split(",")]}
         knobs = [(float(ppc), int(th_d), False) for ppc in a.ppc.split(",") for th_d in a.th_d.split(",")]
         if not a.no_legacy:
@@ -93,7 +95,7 @@ def stream(a, device):
     prep = prepare_case(CaseConfig(labels=a.labels, image=a.image, preset=a.preset, phantom_resolution=a.phantom_resolution,
                                    particle_step=int(a.steps.split(",")[0]), device=device))
     model = prep.full_model
-    sl = resolve_slices(prep, model, None)
+    sl = prep.resolve_slices(model, None)
     A_end = paper_affine(1)
     est = None
     lat, errs, steps = [], [], []
@@ -102,13 +104,12 @@ def stream(a, device):
         s = f / a.stream
         A = np.eye(2) + s * (A_end - np.eye(2))
         # the truth of this frame: every particle moved by the ramped affine (geometric GT)
-        from warpmpm.driving import apply_in_plane_affine, in_plane_axes
 
         e_u, e_v = in_plane_axes(model, "axial")
-        truth = apply_in_plane_affine(model.positions_mm, e_u, e_v, A, np.zeros(2), prep.input_centre_mm)
+        truth = InPlaneAffine(A).apply(model.positions_mm, e_u, e_v, prep.centre_mm)
         t0 = time.perf_counter()
         if est is None:
-            idx, _ = affine_targets(model, model.positions_mm, sl, [(A, np.zeros(2))], prep.input_centre_mm)
+            idx, _ = affine_targets(model, model.positions_mm, sl, [InPlaneAffine(A)], prep.centre_mm)
             est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(device=device), extra_points_mm=truth)
         res = est.estimate(truth[idx])
         lat.append(time.perf_counter() - t0)

@@ -25,9 +25,11 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 import warp as wp  # noqa: E402
 
-from warpmpm.driving import SliceDrivenEstimator, affine_targets  # noqa: E402
+from warpmpm.driving import SliceDrivenEstimator  # noqa: E402
+from warpmpm.slices import InPlaneAffine  # noqa: E402
+from warpmpm.targets import affine_targets  # noqa: E402
 from warpmpm.groundtruth import paper_affine  # noqa: E402
-from warpmpm.runner import CaseConfig, prepare_case, resolve_slices  # noqa: E402
+from warpmpm.experiment import CaseConfig, prepare_case  # noqa: E402
 
 
 @wp.kernel
@@ -58,8 +60,8 @@ def main(argv=None):
     device = a.device or ("cuda" if wp.is_cuda_available() else "cpu")
     prep = prepare_case(CaseConfig(particle_step=a.particle_step, device=device, phantom_resolution=a.phantom_resolution))
     model = prep.full_model
-    sl = resolve_slices(prep, model, None)
-    _, tg = affine_targets(model, model.positions_mm, sl, [(paper_affine(a.deformation), np.zeros(2))], prep.input_centre_mm)
+    sl = prep.resolve_slices(model, None)
+    _, tg = affine_targets(model, model.positions_mm, sl, [InPlaneAffine(paper_affine(a.deformation))], prep.centre_mm)
     est = SliceDrivenEstimator(model, sl, extra_points_mm=tg)
     est.estimate(tg)  # warm-up: compile and load kernels
     est = SliceDrivenEstimator(model, sl, extra_points_mm=tg)

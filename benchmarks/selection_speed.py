@@ -7,7 +7,7 @@ of ``--repeats``), and runs ONE simulation of the chosen condition (paper deform
 targets) as the peer: the brute force the model replaces costs that times the number of candidates
 times 8 deformations. The paper: 1.48 +- 0.151 ms per choice.
 
-    python benchmarks/selection_speed.py --axial-model runs/selection_error.json --plane-model runs/selection_planes.json
+    python benchmarks/selection_speed.py --selector runs/selection_error.json --plane-selector runs/selection_planes.json
 """
 
 from __future__ import annotations
@@ -26,14 +26,13 @@ import warp as wp  # noqa: E402
 
 from dataclasses import replace  # noqa: E402
 
-from warpmpm.model import orientation_image_axis  # noqa: E402
-from warpmpm.runner import CaseConfig, make_ground_truth, prepare_case, run_prepared  # noqa: E402
-from warpmpm.selection import SelectionModel  # noqa: E402
+from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared  # noqa: E402
+from warpmpm.selection import DEFAULT_PLANE_SELECTOR, DEFAULT_SELECTOR, ConditionSelector  # noqa: E402
 
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
 
 
-def time_rank(model: SelectionModel, full, orientations, repeats: int) -> tuple[float, float, int]:
+def time_rank(model: ConditionSelector, full, orientations, repeats: int) -> tuple[float, float, int]:
     ts = []
     for _ in range(repeats):
         ranked, wall = model.rank(full, orientations, k=3)
@@ -44,14 +43,14 @@ def time_rank(model: SelectionModel, full, orientations, repeats: int) -> tuple[
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--axial-model", required=True)
-    p.add_argument("--plane-model", default=None)
+    p.add_argument("--selector", default=DEFAULT_SELECTOR, help="axial selection model (default: the shipped one)")
+    p.add_argument("--plane-selector", default=DEFAULT_PLANE_SELECTOR, help="sagittal/coronal model (default: the shipped one)")
     p.add_argument("--repeats", type=int, default=200)
     p.add_argument("--device", default="cpu")
     a = p.parse_args(argv)
     wp.config.quiet = True
-    axial = SelectionModel.load(a.axial_model)
-    plane = SelectionModel.load(a.plane_model) if a.plane_model else None
+    axial = ConditionSelector.load(a.selector)
+    plane = ConditionSelector.load(a.plane_selector) if a.plane_selector else None
     cases = [("phantom (default, step 2)", CaseConfig(particle_step=2, device=a.device, baselines=()))]
     for name, preset in (("totalseg_mr", "totalseg_mr"), ("totalseg_ct", "totalseg_ct")):
         labels = os.path.join(DATA, name, "labels.nii.gz")
@@ -70,8 +69,7 @@ def main(argv=None):
         (orientation, k, combo), _ = axial.rank(full, k=1)[0][0]
         gt = make_ground_truth(prep, cfg)
         t0 = time.perf_counter()
-        k_in = k + prep.offset[orientation_image_axis(full.geometry, orientation)]
-        run_prepared(prep, gt, replace(cfg, organs=combo, slices=f"{orientation}:{k_in}"))
+        run_prepared(prep, gt, replace(cfg, organs=combo, slices=prep.label(orientation, k)))
         sim = time.perf_counter() - t0
         print(f"| {name} | {full.n} | axial (slice x combination) | {n} | {med:.2f} | {p95:.2f} | {sim:.2f} | {sim / (med / 1e3):,.0f} |")
         if plane is not None:

@@ -25,7 +25,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 import warp as wp  # noqa: E402
 
-from warpmpm.model import block_model, merge_models  # noqa: E402
+from warpmpm.scenes import block_model, merge_models  # noqa: E402
 from warpmpm.solver import MPMModel, MPMSolver, SolverConfig  # noqa: E402
 
 

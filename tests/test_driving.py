@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
-from warpmpm.driving import (ConvergenceConfig, ConvergenceMonitor, DriveConfig, DrivingSlice, SliceDrivenEstimator, affine_targets,
-                             apply_in_plane_affine, driven_indices, in_plane_axes, parse_slices)
+from warpmpm.driving import ConvergenceConfig, ConvergenceMonitor, DriveConfig, SliceDrivenEstimator
+from warpmpm.slices import DrivingSlice, InPlaneAffine, apply_in_plane_affine, driven_indices, in_plane_axes, parse_slices
+from warpmpm.targets import affine_targets
 from warpmpm.groundtruth import paper_affine
 from warpmpm.images import InputError
-from warpmpm.model import block_model
+from warpmpm.scenes import block_model
 from warpmpm.solver import SolverConfig
 
 CPU = SolverConfig(device="cpu")
@@ -52,7 +53,7 @@ def one_slice_run(tiny_model):
     sl = [DrivingSlice("axial", k)]
     # an in-plane deformation about the slice's own centre: the slice shrinks and shears in place
     centre = m.positions_mm[m.slice_mask("axial", k)].mean(0)
-    idx, tg = affine_targets(m, m.positions_mm, sl, [(paper_affine(1), np.zeros(2))], centre)
+    idx, tg = affine_targets(m, m.positions_mm, sl, [InPlaneAffine(paper_affine(1))], centre)
     est = SliceDrivenEstimator(m, sl, solver_config=CPU, extra_points_mm=tg)
     return m, k, idx, tg, est, est.estimate(tg)
 
@@ -157,7 +158,7 @@ def test_captured_graph_replays_the_eager_steps_exactly(tiny_model):
     m = tiny_model
     k = int(np.median(m.voxel_ijk[m.organ_slice("pancreas"), 2]))
     sl = [DrivingSlice("axial", k)]
-    _, tg = affine_targets(m, m.positions_mm, sl, [(paper_affine(1), np.zeros(2))])
+    _, tg = affine_targets(m, m.positions_mm, sl, [InPlaneAffine(paper_affine(1))])
     eager, r1 = _frame(m, sl, tg, sync_every=10)
     graph, r2 = _frame(m, sl, tg, sync_every=10, use_graph=True)
     assert graph._graph is not None and r1.steps == r2.steps == 120
@@ -179,7 +180,7 @@ def test_gpu_matches_cpu_within_float_tolerance(tiny_model):
     m = tiny_model
     k = int(np.median(m.voxel_ijk[m.organ_slice("pancreas"), 2]))
     sl = [DrivingSlice("axial", k)]
-    _, tg = affine_targets(m, m.positions_mm, sl, [(paper_affine(1), np.zeros(2))])
+    _, tg = affine_targets(m, m.positions_mm, sl, [InPlaneAffine(paper_affine(1))])
     conv = ConvergenceConfig(max_steps=200, th_s=10**6)
     cpu = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu"), extra_points_mm=tg).estimate(tg, convergence=conv)
     gpu = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cuda"), extra_points_mm=tg).estimate(tg, convergence=conv)

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from warpmpm.driving import in_plane_axes
 from warpmpm.groundtruth import PAPER_DEFORMATIONS, contact_ground_truth, paper_affine, paper_ground_truth, perturb_materials
 from warpmpm.images import crop_to_organs
 from warpmpm.metrics import dice, evaluate, particle_errors_mm
 from warpmpm.model import build_model
 from warpmpm.registration import register_volumes_affine
-from warpmpm.runner import main
+from warpmpm.cli import run_main as main
+from warpmpm.slices import in_plane_axes
 from warpmpm.solver import SolverConfig
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
@@ -162,7 +162,7 @@ def test_gt_label_map_at_rest_is_the_planning_map_for_sampled_models(tiny_case):
 
 
 def test_empty_slice_refused_before_any_simulation(tmp_path, capsys, monkeypatch):
-    import warpmpm.runner as runner
+    import warpmpm.experiment.run as runner
 
     def no_gt(*a, **k):
         raise AssertionError("the ground truth was simulated before the slice was checked")
@@ -182,7 +182,7 @@ def _maybe_diverge(i):
 
 
 def test_a_failed_task_does_not_lose_the_others(capsys):
-    from warpmpm.runner import run_tasks
+    from warpmpm.experiment.tasks import run_tasks
 
     got = []
     failed = run_tasks(_maybe_diverge, [(0,), (1,), (2,)], got.extend)
@@ -207,7 +207,7 @@ def test_paper_gt_that_diverged_at_the_estimators_cfl_now_converges():
     """Regression: this GT (every particle driven) gave NaN at step 1730 when it ran at CFL 0.5."""
     import numpy as np
 
-    from warpmpm.runner import CaseConfig, make_ground_truth, prepare_case
+    from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case
 
     cfg = CaseConfig(phantom_resolution=3.0, phantom_seed=8, deformation=8, device="cpu")
     gt = make_ground_truth(prepare_case(cfg), cfg)

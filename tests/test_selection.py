@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from warpmpm.model import build_model
-from warpmpm.runner import CaseConfig, sweep
-from warpmpm.selection import FEATURES, SelectionModel, TrainingTable, candidates, regret, standardise, tune_and_train
+from warpmpm.experiment import CaseConfig
+from warpmpm.experiment.sweep import sweep
+from warpmpm.selection import FEATURES, ConditionSelector, TrainingTable, candidates, regret, standardise, tune_and_train
 
 
 def test_features_match_hand_counts(tiny_model):
@@ -49,7 +50,7 @@ def test_regressor_recovers_known_relation_and_roundtrips(tmp_path):
     assert set(rep["test_cases"]).isdisjoint(set(table.cases[~model.test_mask]))
     path = str(tmp_path / "m.json")
     model.save(path)
-    back = SelectionModel.load(path)
+    back = ConditionSelector.load(path)
     np.testing.assert_array_equal(model.predict(table.X), back.predict(table.X))
     r = regret(table, model, model.test_mask)
     assert all(v >= 0 for v in r.values())
@@ -73,14 +74,14 @@ def test_dask_sweep_matches_local_pool(tmp_path):
     kw = dict(deformations=[1], combinations=("p",), orientations=("axial",), slice_stride=3,
               base=CaseConfig(phantom_resolution=3.0, device="cpu", max_steps=400), progress=None)
     cases = [{"name": "tiny", "phantom_seed": 0}]
-    local = sweep(cases, out_csv=str(tmp_path / "a.csv"), workers=2, **kw)
-    dask = sweep(cases, out_csv=str(tmp_path / "b.csv"), scheduler="local", workers=1, **kw)
-    assert len(local) == len(dask) >= 2
+    local, failed = sweep(cases, out_csv=str(tmp_path / "a.csv"), workers=2, **kw)
+    dask, _ = sweep(cases, out_csv=str(tmp_path / "b.csv"), scheduler="local", workers=1, **kw)
+    assert len(local) == len(dask) >= 2 and not failed
     key = lambda r: (r["organs"], r["slice"])  # noqa: E731
     for a, b in zip(sorted(local, key=key), sorted(dask, key=key)):
         assert a["slice"] == b["slice"] and float(a["error_mm"]) == pytest.approx(float(b["error_mm"]), abs=1e-9)
     # resumable: a re-run adds nothing
-    again = sweep(cases, out_csv=str(tmp_path / "a.csv"), workers=1, **kw)
+    again, _ = sweep(cases, out_csv=str(tmp_path / "a.csv"), workers=1, **kw)
     assert len(again) == len(local)
     with open(tmp_path / "a.csv") as f:
         assert len(list(csv.DictReader(f))) == len(local)
@@ -126,7 +127,7 @@ def test_plane_ranker_learns_dice_rank_within_case(tmp_path):
     assert np.mean(list(top1.values())) < 0.05  # within 0.05 Dice of the brute-force best slice
     path = str(tmp_path / "planes.json")
     model.save(path)
-    back = SelectionModel.load(path)
+    back = ConditionSelector.load(path)
     assert back.features == COUNT_FEATURES and back.orientations == ("coronal", "sagittal") and back.combinations == ("psdl",)
 
 
@@ -140,7 +141,8 @@ def test_partial_cases_are_dropped():
 def test_multi_direction_protocol_on_tiny_phantom(tmp_path, tiny_case):
     """One (case, deformation) of the multi-direction protocol, with models trained on synthetic tables:
     more GT-driven directions must not make the estimate worse, and the driven particles are left out."""
-    from warpmpm.runner import MULTI_CONDITIONS, multi_direction_task, summarize_multi
+    from warpmpm.experiment.multi_direction import multi_direction_task
+    from warpmpm.experiment.tables import MULTI_CONDITIONS, summarize_multi
 
     ax, _ = tune_and_train(TrainingTable.from_sweep(synthetic_table(4)), split="row", patience=2, max_trials=3)
     pl, _ = tune_and_train(TrainingTable.from_sweep(synthetic_plane_table(4), "dice_rank"), split="row", patience=2, max_trials=3)
@@ -178,8 +180,9 @@ def test_baseline_regret_by_hand():
 def test_run_case_slices_auto_uses_the_top_ranked_condition(tmp_path, capsys):
     import json
 
-    from warpmpm.runner import CaseConfig as C
-    from warpmpm.runner import main, prepare_case
+    from warpmpm.cli import run_main as main
+    from warpmpm.experiment import CaseConfig as C
+    from warpmpm.experiment import prepare_case
 
     model, _ = tune_and_train(TrainingTable.from_sweep(synthetic_table(4)), split="row", patience=2, max_trials=3)
     path = str(tmp_path / "sel.json")
@@ -191,15 +194,12 @@ def test_run_case_slices_auto_uses_the_top_ranked_condition(tmp_path, capsys):
                "--no-volume-registration", "--max-steps", "800", "--json", out_json])
     assert rc == 0
     out = json.load(open(out_json))
-    from warpmpm.model import orientation_image_axis
-
-    axis = orientation_image_axis(prep.full_model.geometry, "axial")
-    assert out["organs"] == combo and out["slices"] == [f"axial:{k + prep.offset[axis]}"]
+    assert out["organs"] == combo and out["slices"] == [prep.label("axial", k)]
     assert out["selection"]["top"][0][0] == ["axial", k, combo]
     assert "selected" in capsys.readouterr().out
     # a missing model is a clear error, not a traceback
     assert main(["--phantom-resolution", "3", "--slices", "auto", "--selector", str(tmp_path / "nope.json")]) == 2
-    assert main(["--phantom-resolution", "3", "--slices", "auto:as", "--selector", path]) == 2  # no --plane-selector
+    assert main(["--phantom-resolution", "3", "--slices", "auto:zz", "--selector", path]) == 2  # unknown auto mode
     # axial + the plane model's best sagittal slice, psdl
     pl, _ = tune_and_train(TrainingTable.from_sweep(synthetic_plane_table(4), "dice_rank"), split="row", patience=2, max_trials=3)
     pl.save(str(tmp_path / "pl.json"))
@@ -208,7 +208,7 @@ def test_run_case_slices_auto_uses_the_top_ranked_condition(tmp_path, capsys):
                str(tmp_path / "pl.json"), "--device", "cpu", "--no-volume-registration", "--max-steps", "800", "--json", out_json])
     out = json.load(open(out_json))
     assert rc == 0 and out["organs"] == "psdl" and len(out["slices"]) == 2 and out["excluded_driven"]
-    assert out["slices"][1] == f"sagittal:{k2 + prep.offset[orientation_image_axis(prep.full_model.geometry, 'sagittal')]}"
+    assert out["slices"][1] == prep.label("sagittal", k2)
 
 
 def test_within_case_scores_ignore_case_offsets():
@@ -230,16 +230,17 @@ def test_bad_selection_cli_values_are_clear_errors(tmp_path):
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-    def run(script, *args):
-        return subprocess.run([sys.executable, os.path.join(root, "examples", script), *args], capture_output=True, text=True, cwd=tmp_path)
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "warpmpm.cli", *args], capture_output=True, text=True, cwd=tmp_path,
+                              env=dict(os.environ, PYTHONPATH=root))
 
-    r = run("train_selection.py", str(tmp_path / "missing.csv"))
+    r = run("train", str(tmp_path / "missing.csv"))
     assert r.returncode == 2 and "missing.csv not found" in r.stderr
-    r = run("sweep.py", "--slice-stride", "0", "--out", str(tmp_path / "s.csv"))
+    r = run("sweep", "--slice-stride", "0", "--out", str(tmp_path / "s.csv"))
     assert r.returncode == 2 and "--slice-stride" in r.stderr and not (tmp_path / "s.csv").exists()
-    r = run("multi_direction.py", "--axial-model", "a.json", "--plane-model", "p.json", "--top", "0")
+    r = run("multi", "--selector", "a.json", "--plane-selector", "p.json", "--top", "0")
     assert r.returncode == 2 and "--top" in r.stderr
-    r = run("multi_direction.py", "--axial-model", "a.json", "--plane-model", "p.json", "--out", str(tmp_path / "m.csv"))
+    r = run("multi", "--selector", "a.json", "--plane-selector", "p.json", "--out", str(tmp_path / "m.csv"))
     assert r.returncode == 2 and "a.json" in r.stderr and not (tmp_path / "m.csv").exists()
 
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from warpmpm.images import InputError
-from warpmpm.model import block_model, merge_models
+from warpmpm.scenes import block_model, merge_models
 from warpmpm.solver import MPMModel, MPMSolver, SimulationError, SolverConfig
 
 CPU = dict(device="cpu")

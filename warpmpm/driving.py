@@ -29,116 +29,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from .images import InputError
-from .model import ParticleModel, orientation_image_axis
-from .solver import MPMModel, MPMSolver, SimulationError, SolverConfig
-
-
-# --------------------------------------------------------------------------------------------
-# Slices and targets
-# --------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class DrivingSlice:
-    """A driving slice: orientation (axial, sagittal, coronal) and voxel index of the planning volume."""
-
-    orientation: str
-    index: int
-
-    def __str__(self) -> str:
-        return f"{self.orientation}:{self.index}"
-
-
-def parse_slices(text: str) -> list[DrivingSlice]:
-    """Parse ``"axial:12,sagittal:40"`` into :class:`DrivingSlice` objects."""
-    out = []
-    for part in [p.strip() for p in text.split(",") if p.strip()]:
-        if ":" not in part:
-            raise InputError(f"slice {part!r} must read ORIENTATION:INDEX, e.g. axial:12")
-        o, i = part.split(":", 1)
-        o = o.strip().lower()
-        if o not in ("axial", "sagittal", "coronal"):
-            raise InputError(f"unknown slice orientation {o!r} in {part!r}; use axial, sagittal or coronal")
-        try:
-            idx = int(i)
-        except ValueError:
-            raise InputError(f"slice index {i!r} in {part!r} is not an integer") from None
-        out.append(DrivingSlice(o, idx))
-    if not out:
-        raise InputError("no driving slice given")
-    return out
-
-
-def driven_indices(model: ParticleModel, slices: list[DrivingSlice]) -> np.ndarray:
-    """Indices of the particles lying on any of ``slices`` (sorted, unique).
-
-    Raises :class:`InputError` for an index outside the volume or a slice holding no particle.
-    """
-    if not slices:
-        raise InputError("no driving slice given")
-    mask = np.zeros(model.n, dtype=bool)
-    for s in slices:
-        on = model.slice_mask(s.orientation, s.index)
-        if not on.any():
-            raise InputError(f"{s.orientation} slice {s.index} holds no particle of the organs {model.letters}")
-        mask |= on
-    return np.nonzero(mask)[0]
-
-
-def in_plane_axes(model_or_geometry, orientation: str) -> tuple[np.ndarray, np.ndarray]:
-    """World unit vectors (e_u, e_v) of a slice's two in-plane image axes, in image-axis order."""
-    geometry = getattr(model_or_geometry, "geometry", model_or_geometry)
-    normal = orientation_image_axis(geometry, orientation)
-    u, v = [a for a in range(3) if a != normal]
-    return geometry.axis_world_direction(u), geometry.axis_world_direction(v)
-
-
-def check_affine(A: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    A = np.asarray(A, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64).reshape(-1)
-    if A.shape != (2, 2) or t.shape != (2,):
-        raise InputError(f"an in-plane affine needs A of shape (2, 2) and t of shape (2,), got {A.shape} and {t.shape}")
-    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(t))):
-        raise InputError("the in-plane affine holds a non-finite value")
-    det = np.linalg.det(A)
-    if abs(det) < 1e-6 or np.linalg.cond(A) > 1e6:
-        raise InputError(f"the in-plane affine is singular or degenerate (det {det:.3g})")
-    return A, t
-
-
-def apply_in_plane_affine(positions_mm: np.ndarray, e_u: np.ndarray, e_v: np.ndarray, A: np.ndarray, t_mm: np.ndarray,
-                          centre_mm: np.ndarray) -> np.ndarray:
-    """``x' = A (x - c) + c + t`` in the plane spanned by (e_u, e_v); the out-of-plane coordinate is unchanged."""
-    A, t_mm = check_affine(A, t_mm)
-    d = np.asarray(positions_mm, dtype=np.float64) - np.asarray(centre_mm, dtype=np.float64)
-    uv = np.stack([d @ e_u, d @ e_v], axis=1)
-    new_uv = uv @ A.T + t_mm
-    delta = new_uv - uv
-    return positions_mm + delta[:, :1] * e_u[None, :] + delta[:, 1:] * e_v[None, :]
-
-
-def affine_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[DrivingSlice], affines: list,
-                   centre_mm: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Driven indices and targets from one in-plane affine ``(A, t_mm)`` per driving slice.
-
-    ``positions_mm`` is the state at t-1 (all particles); ``centre_mm`` defaults to the volume centre.
-    A particle on two slices takes the target of the first.
-    """
-    if len(affines) != len(slices):
-        raise InputError(f"{len(slices)} driving slices but {len(affines)} affines")
-    centre = model.geometry.center_mm() if centre_mm is None else np.asarray(centre_mm, dtype=np.float64)
-    idx_all, tgt_all = [], []
-    taken = np.zeros(model.n, dtype=bool)
-    for s, (A, t) in zip(slices, affines):
-        idx = driven_indices(model, [s])
-        idx = idx[~taken[idx]]
-        taken[idx] = True
-        e_u, e_v = in_plane_axes(model, s.orientation)
-        idx_all.append(idx)
-        tgt_all.append(apply_in_plane_affine(positions_mm[idx], e_u, e_v, A, t, centre))
-    idx = np.concatenate(idx_all)
-    order = np.argsort(idx)
-    return idx[order], np.concatenate(tgt_all)[order]
+from .errors import InputError, SimulationError
+from .model import ParticleModel
+from .slices import DrivingSlice, driven_indices
+from .solver import MPMModel, MPMSolver, SolverConfig
 
 
 # --------------------------------------------------------------------------------------------
@@ -211,6 +105,24 @@ class ConvergenceMonitor:
 # --------------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
+class Gains:
+    """Resolved PID gains in physical units (acceleration form, see module docstring)."""
+
+    kp_per_s2: float
+    """Proportional gain (1/s^2)."""
+    kd_per_s: float
+    """Derivative (velocity) gain (1/s)."""
+    ki_per_s3: float
+    """Integral gain (1/s^3)."""
+    max_accel_m_s2: float
+    """Clamp of the commanded acceleration magnitude (m/s^2)."""
+
+    def to_json(self) -> dict:
+        return {"kp_per_s2": self.kp_per_s2, "kd_per_s": self.kd_per_s, "ki_per_s3": self.ki_per_s3,
+                "max_accel_m_s2": self.max_accel_m_s2}
+
+
+@dataclass(frozen=True)
 class DriveConfig:
     """PID gains (acceleration form, see module docstring) and clamp.
 
@@ -231,7 +143,7 @@ class DriveConfig:
     ki_ratio: float = 0.02
     max_accel_m_s2: float | None = None
 
-    def resolve(self, dt_s: float, dx_mm: float) -> dict[str, float]:
+    def resolve(self, dt_s: float, dx_mm: float) -> Gains:
         for name in ("kp_per_s2", "kd_per_s", "ki_per_s3", "max_accel_m_s2"):
             value = getattr(self, name)
             if value is not None and (not math.isfinite(value) or value < 0):
@@ -248,7 +160,7 @@ class DriveConfig:
                 f"driving gains too large for the time step {dt_s:.3e} s: need Kp dt^2 <= 0.25 and Kd dt <= 1 "
                 f"(Kp <= {0.25 / dt_s**2:.3e} 1/s^2, Kd <= {1 / dt_s:.3e} 1/s)"
             )
-        return {"kp_per_s2": kp, "kd_per_s": kd, "ki_per_s3": ki, "max_accel_m_s2": amax}
+        return Gains(kp, kd, ki, amax)
 
 
 @wp.kernel
@@ -303,7 +215,7 @@ class DriveResult:
     rms_history_mm: np.ndarray
     converged: bool
     reason: str
-    gains: dict = field(default_factory=dict)
+    gains: Gains | None = None
 
     @property
     def final_rel_residual(self) -> float:
@@ -320,7 +232,7 @@ class SliceDrivenEstimator:
     Example::
 
         est = SliceDrivenEstimator(model, [DrivingSlice("axial", 20)])
-        idx, targets = affine_targets(model, est.positions_mm(), est.slices, [(A, t)])
+        idx, targets = affine_targets(model, est.positions_mm(), est.slices, [InPlaneAffine(A, t)])  # warpmpm.targets
         result = est.estimate(targets)          # frame 1
         result2 = est.estimate(next_targets)    # frame 2 starts from frame 1's state
 
@@ -394,8 +306,8 @@ class SliceDrivenEstimator:
         self._sums.zero_()
         for row in range(self.sync_every):
             wp.launch(pid_force, nd, [self._driven_wp, self._target, self.state.x, self.state.v, self.mpm.mass, self._integral,
-                                      self._bias, self._centre, g["kp_per_s2"], g["kd_per_s"], g["ki_per_s3"],
-                                      g["max_accel_m_s2"], dt, self._force, self._sums, row], device=d)
+                                      self._bias, self._centre, g.kp_per_s2, g.kd_per_s, g.ki_per_s3,
+                                      g.max_accel_m_s2, dt, self._force, self._sums, row], device=d)
             self.solver.step(self.state, self._other, self._force, check=check)
             self.state, self._other = self._other, self.state
 
@@ -444,7 +356,7 @@ class SliceDrivenEstimator:
         conv = ConvergenceMonitor(convergence or self.convergence)
         self._target.assign(self.mpm.to_local_m(targets_mm))
         if carry_force and self.frames > 0:
-            self._bias.assign(self._bias.numpy() + self.gains["ki_per_s3"] * self._integral.numpy())
+            self._bias.assign(self._bias.numpy() + self.gains.ki_per_s3 * self._integral.numpy())
         else:
             self._bias.zero_()
         self._integral.zero_()
@@ -474,7 +386,7 @@ class SliceDrivenEstimator:
         self.frames += 1
         # on a GPU the loop runs whole batches of sync_every steps: report the steps actually run
         result = DriveResult(self.positions_mm(), self._steps_run(len(rel_hist)), wall, np.asarray(rel_hist), np.asarray(rms_hist),
-                             conv.converged, conv.reason, dict(g))
+                             conv.converged, conv.reason, g)
         if not result.converged:
             warnings.warn(f"estimate did not converge in {conv.steps} steps (relative residual {rel:.2e}, "
                           f"RMS {rms_hist[-1]:.3f} mm)", RuntimeWarning, stacklevel=2)

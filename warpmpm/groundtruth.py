@@ -22,9 +22,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import SimpleITK as sitk
 
-from .driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator, apply_in_plane_affine, in_plane_axes
-from .images import Case, InputError
+from .driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator
+from .errors import InputError
+from .images import Case
 from .model import Material, ParticleModel, voxelize
+from .slices import InPlaneAffine, in_plane_axes
 from .solver import SolverConfig
 
 #: The paper's deformation table: type -> (r, g, s).
@@ -72,6 +74,8 @@ class GroundTruth:
     steps: int = 0
     wall_s: float = 0.0
     converged: bool = True
+    cache: dict = field(default_factory=dict, repr=False, compare=False)
+    """Derived data computed once per GT by its users (e.g. the GT-warped image volume)."""
 
     def organ_positions(self, organ: str) -> np.ndarray:
         return self.positions_mm[self.model.organ_slice(organ)]
@@ -94,15 +98,24 @@ class GroundTruth:
 GT_CFL = 0.3
 
 
-def _gt_solver_config(base: SolverConfig | None, device: str | None) -> SolverConfig:
+def gt_solver_config(base: SolverConfig | None = None, device: str | None = None) -> SolverConfig:
+    """The ground truth's solver settings: the estimator's (every field kept) on a finer discretisation.
+
+    Changed from ``base`` (the estimator's settings), and only these: half the particles per cell
+    (at least 1) and, for an explicit ``cell_size_mm``, a cell ``0.5^(1/3)`` as wide (the same
+    refinement); a Courant number of at most :data:`GT_CFL`; ``dt_s`` cleared, since a time step fixed
+    for the estimator's grid is above the finer grid's limit (the GT derives its own stable step);
+    ``device`` defaults to ``device``.
+    """
     b = base or SolverConfig(device=device)
-    # The GT uses its own discretisation: a finer grid than the estimator's default, and a smaller step.
-    return SolverConfig(particles_per_cell=max(1.0, b.particles_per_cell * 0.5), margin_mm=b.margin_mm, wall_cells=b.wall_cells,
-                        cfl=min(b.cfl, GT_CFL), device=b.device or device)
+    return replace(b, particles_per_cell=max(1.0, b.particles_per_cell * 0.5),
+                   cell_size_mm=None if b.cell_size_mm is None else b.cell_size_mm * 0.5 ** (1.0 / 3.0),
+                   cfl=min(b.cfl, GT_CFL), dt_s=None, device=b.device or device)
 
 
 def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray, *, perturb: bool, seed: int,
-                solver_config: SolverConfig | None, device: str | None, max_steps: int = 4000) -> tuple[np.ndarray, dict]:
+                solver_config: SolverConfig | None, device: str | None, max_steps: int = 4000):
+    """Simulate a GT: ``targets_mm`` of the ``driven`` particles, perturbed materials; returns ``(params, result)``."""
     params: dict = {"perturbed": bool(perturb), "material_seed": int(seed)}
     mats = dict(model.materials)
     if perturb:
@@ -110,7 +123,7 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
         params["materials"] = {o: {"lam_pa": m.lam_pa, "mu_pa": m.mu_pa} for o, m in mats.items()}
     gt_model = ParticleModel(model.positions_mm, model.organ_index, model.organs, model.voxel_ijk, model.volume_mm3, mats,
                              model.geometry, model.sampling_step, dict(model.meta))
-    cfg = _gt_solver_config(solver_config, device)
+    cfg = gt_solver_config(solver_config, device)
     # the truth is held to the paper's stricter stopping rule (TH_D = 4), not the estimator's default
     est = SliceDrivenEstimator(gt_model, driven=driven, solver_config=cfg, drive_config=DriveConfig(),
                                convergence=replace(ConvergenceConfig.paper(), max_steps=max_steps), extra_points_mm=targets_mm)
@@ -119,7 +132,7 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
     params["gt_steps"] = res.steps
     params["gt_converged"] = res.converged
     params["gt_rms_residual_mm"] = res.final_rms_mm
-    return res.positions_mm, params | {"_result": res}
+    return params, res
 
 
 def paper_ground_truth(model: ParticleModel, deformation: int, *, literal: bool = False, perturb: bool = True, seed: int = 0,
@@ -132,15 +145,14 @@ def paper_ground_truth(model: ParticleModel, deformation: int, *, literal: bool 
     A = paper_affine(deformation, literal)
     centre = model.geometry.center_mm() if centre_mm is None else np.asarray(centre_mm, dtype=np.float64)
     e_u, e_v = in_plane_axes(model, "axial")
-    targets = apply_in_plane_affine(model.positions_mm, e_u, e_v, A, np.zeros(2), centre)
+    targets = InPlaneAffine(A).apply(model.positions_mm, e_u, e_v, centre)
     r, g, s = PAPER_DEFORMATIONS[deformation]
     params = {"deformation": deformation, "r": r, "g": g, "s": s, "literal": literal, "A": A.tolist(), "centre_mm": centre.tolist()}
     if not simulate:
         return GroundTruth(model, targets, "paper", params)
-    pos, sim = simulate_gt(model, np.arange(model.n), targets, perturb=perturb, seed=seed + 1000 * deformation,
+    sim, res = simulate_gt(model, np.arange(model.n), targets, perturb=perturb, seed=seed + 1000 * deformation,
                            solver_config=solver_config, device=device)
-    res = sim.pop("_result")
-    return GroundTruth(model, pos, "paper", params | sim, res.steps, res.wall_s, res.converged)
+    return GroundTruth(model, res.positions_mm, "paper", params | sim, res.steps, res.wall_s, res.converged)
 
 
 def contact_targets(model: ParticleModel, seed: int, neighbour: str | None = None, push_mm: float | None = None,
@@ -188,21 +200,8 @@ def contact_ground_truth(model: ParticleModel, *, seed: int = 0, perturb: bool =
     """The contact protocol on ``model``; parameters and seed recorded in ``params``."""
     idx, targets, params = contact_targets(model, seed, neighbour, push_mm)
     params["seed"] = seed
-    pos, sim = simulate_gt(model, idx, targets, perturb=perturb, seed=seed + 77, solver_config=solver_config, device=device)
-    res = sim.pop("_result")
-    return GroundTruth(model, pos, "contact", params | sim, res.steps, res.wall_s, res.converged)
-
-
-def fit_in_plane_affine(before_mm: np.ndarray, after_mm: np.ndarray, e_u: np.ndarray, e_v: np.ndarray,
-                        centre_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares in-plane affine (A, t) about ``centre_mm`` mapping ``before`` to ``after``."""
-    d0 = before_mm - centre_mm
-    d1 = after_mm - centre_mm
-    uv0 = np.stack([d0 @ e_u, d0 @ e_v], axis=1)
-    uv1 = np.stack([d1 @ e_u, d1 @ e_v], axis=1)
-    X = np.hstack([uv0, np.ones((len(uv0), 1))])
-    sol, *_ = np.linalg.lstsq(X, uv1, rcond=None)
-    return sol[:2].T, sol[2]
+    sim, res = simulate_gt(model, idx, targets, perturb=perturb, seed=seed + 77, solver_config=solver_config, device=device)
+    return GroundTruth(model, res.positions_mm, "contact", params | sim, res.steps, res.wall_s, res.converged)
 
 
 def warp_image(case: Case, model: ParticleModel, gt_positions_mm: np.ndarray, sigma_mm: float = 4.0,

@@ -16,9 +16,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import SimpleITK as sitk
 
+from .errors import InputError
+
 #: Organ names in the method's order and their one-letter codes (the paper's ``psdl``).
 ORGANS = ("pancreas", "stomach", "duodenum", "left_kidney")
 ORGAN_LETTERS = {"p": "pancreas", "s": "stomach", "d": "duodenum", "l": "left_kidney"}
+#: The paper's organ combinations: the pancreas always, with any subset of the other three.
+COMBINATIONS = ("p", "ps", "pd", "pl", "psd", "psl", "pdl", "psdl")
 
 #: Label presets: organ name -> label value in the label map.
 PRESETS: dict[str, dict[str, int]] = {
@@ -29,10 +33,6 @@ PRESETS: dict[str, dict[str, int]] = {
     # TotalSegmentator `total_mr` task
     "totalseg_mr": {"left_kidney": 3, "stomach": 6, "pancreas": 7, "duodenum": 14},
 }
-
-
-class InputError(ValueError):
-    """Bad user input: a missing file, an unknown preset, mismatched grids, an absent organ..."""
 
 
 def resolve_labels(preset: str | dict[str, int]) -> dict[str, int]:

@@ -12,7 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .images import ORGANS, Case, Geometry, InputError, organs_to_letters, parse_organs
+from .errors import InputError
+from .images import ORGANS, Case, Geometry, organs_to_letters, parse_organs
+from .slices import orientation_image_axis
 
 
 @dataclass(frozen=True)
@@ -49,18 +51,6 @@ PAPER_MATERIALS: dict[str, Material] = {
     "duodenum": Material(lam_pa=8.11e7, mu_pa=3.38e6),
     "left_kidney": Material(lam_pa=3.99e6, mu_pa=8.01e3),
 }
-
-#: Orientation name -> world axis it is normal to (0: x L-R, 1: y A-P, 2: z S-I).
-ORIENTATION_WORLD_AXIS = {"sagittal": 0, "coronal": 1, "axial": 2}
-
-
-def orientation_image_axis(geometry: Geometry, orientation: str) -> int:
-    """The image axis (0: i, 1: j, 2: k) whose direction is closest to the orientation's normal."""
-    if orientation not in ORIENTATION_WORLD_AXIS:
-        raise InputError(f"unknown slice orientation {orientation!r}; use axial, sagittal or coronal")
-    world_axis = ORIENTATION_WORLD_AXIS[orientation]
-    return int(np.argmax(np.abs(geometry.direction_matrix[world_axis, :])))
-
 
 @dataclass
 class ParticleModel:
@@ -213,36 +203,3 @@ def voxelize(positions_mm: np.ndarray, geometry: Geometry, mask: np.ndarray | No
     out = np.zeros(geometry.size[::-1], dtype=bool)
     out[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = True
     return out
-
-
-def block_model(
-    shape: tuple[int, int, int],
-    spacing_mm: tuple[float, float, float] = (2.0, 2.0, 2.0),
-    organ: str = "pancreas",
-    origin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    materials: dict[str, Material] | None = None,
-) -> ParticleModel:
-    """A rectangular block of one organ's material, one particle per voxel: the test scene.
-
-    ``shape`` is the number of voxels along x, y, z; the block's grid is the volume itself.
-    """
-    from .images import Geometry
-
-    geom = Geometry(tuple(int(s) for s in shape), tuple(float(s) for s in spacing_mm), tuple(float(o) for o in origin_mm))
-    kk, jj, ii = np.meshgrid(*[np.arange(s) for s in shape[::-1]], indexing="ij")
-    ijk = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1).astype(np.int32)
-    mats = dict(PAPER_MATERIALS)
-    mats.update(materials or {})
-    return ParticleModel(geom.index_to_world(ijk), np.zeros(len(ijk), dtype=np.int32), (organ,), ijk,
-                         np.full(len(ijk), geom.voxel_volume_mm3), {organ: mats[organ]}, geom)
-
-
-def merge_models(a: ParticleModel, b: ParticleModel) -> ParticleModel:
-    """Two models with different organs in one scene (test scenes of touching bodies)."""
-    organs = tuple(o for o in ORGANS if o in a.organs or o in b.organs)
-    if set(a.organs) & set(b.organs):
-        raise InputError("merge_models needs models of different organs")
-    idx = np.concatenate([[organs.index(a.organs[i]) for i in a.organ_index], [organs.index(b.organs[i]) for i in b.organ_index]]).astype(np.int32)
-    mats = {**a.materials, **b.materials}
-    return ParticleModel(np.vstack([a.positions_mm, b.positions_mm]), idx, organs, np.vstack([a.voxel_ijk, b.voxel_ijk]),
-                         np.concatenate([a.volume_mm3, b.volume_mm3]), {o: mats[o] for o in organs}, a.geometry)

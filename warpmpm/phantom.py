@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .images import PRESETS, Case, Geometry, InputError
+from .errors import InputError
+from .images import PRESETS, Case, Geometry
 
 #: Intensities of the synthetic MR-like image (arbitrary units, T1-like contrast).
 INTENSITY = {"background": 0.0, "body": 180.0, "liver": 330.0, "spine": 90.0,

@@ -5,7 +5,7 @@ Slice coordinates: a slice normal to image axis ``a`` is a 2D image whose physic
 the in-plane offsets ``(u, v) = ((x - c) . e_u, (x - c) . e_v)`` in mm from the driving centre ``c``
 (``e_u, e_v``: world directions of the two in-plane image axes, in axis order). A registration's
 ``(A, t)`` is then exactly the driving affine ``x' = A (x - c) + c + t`` of
-:func:`warpmpm.driving.apply_in_plane_affine`.
+:class:`warpmpm.slices.InPlaneAffine`.
 """
 
 from __future__ import annotations
@@ -16,33 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 import SimpleITK as sitk
 
-from .driving import in_plane_axes
-from .images import Geometry, InputError
-from .model import orientation_image_axis
+from .errors import InputError
+from .images import Geometry
+from .slices import InPlaneAffine, extract_slice
 
 
 # --------------------------------------------------------------------------------------------
 # 2D slices
 # --------------------------------------------------------------------------------------------
-
-def extract_slice(volume: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray) -> sitk.Image:
-    """The 2D image of ``volume`` (z, y, x) on slice ``index`` of an orientation, in centred in-plane mm."""
-    axis = orientation_image_axis(geometry, orientation)
-    if not (0 <= int(index) < geometry.size[axis]):
-        raise InputError(f"{orientation} slice {index} is outside the volume (valid 0..{geometry.size[axis] - 1})")
-    u, v = [a for a in range(3) if a != axis]
-    np_axis = 2 - axis  # numpy order is (z, y, x)
-    plane = np.take(volume, int(index), axis=np_axis).astype(np.float32)
-    # remaining numpy axes are (v, u) in that order: the larger image axis first
-    img = sitk.GetImageFromArray(plane)
-    idx0 = np.zeros(3)
-    idx0[axis] = index
-    x0 = geometry.index_to_world(idx0[None, :])[0] - np.asarray(centre_mm, dtype=np.float64)
-    e_u, e_v = in_plane_axes(geometry, orientation)
-    img.SetOrigin((float(x0 @ e_u), float(x0 @ e_v)))
-    img.SetSpacing((geometry.spacing_mm[u], geometry.spacing_mm[v]))
-    return img
-
 
 def capture_slice(warped_volume: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray, *,
                   noise_sd: float = 0.0, in_plane_factor: float = 1.0, seed: int = 0) -> sitk.Image:
@@ -82,6 +63,11 @@ class SliceRegistration:
     stop: str
     wall_s: float
     ok: bool = True
+
+    @property
+    def affine(self) -> InPlaneAffine:
+        """The forward in-plane motion as an :class:`InPlaneAffine`."""
+        return InPlaneAffine(self.A, self.t_mm)
 
 
 def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, *, mask: sitk.Image | None = None,
@@ -271,69 +257,3 @@ def organ_intensity_volume(labels: np.ndarray, label_values: dict[str, int], geo
         vol[labels == value] = 100.0 * (n + 1)
     img = geometry.apply_to(sitk.GetImageFromArray(vol))
     return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(img, sigma_mm))
-
-
-def planning_and_gt_volumes(case, gt) -> tuple[np.ndarray, np.ndarray]:
-    """The planning intensity volume and the same at the GT state (the image warped by the GT motion).
-
-    Without an image, both are smooth organ-intensity volumes drawn from the planning and GT label maps.
-    """
-    from .groundtruth import warp_image
-
-    cached = getattr(gt, "_volumes", None)  # the GT warp is the costly part; one per GT is enough
-    if cached is not None and cached[0] is case:
-        return cached[1]
-    if case.image is not None:
-        pair = (case.image, warp_image(case, gt.model, gt.positions_mm))
-    else:
-        values = {o: case.label_map[o] for o in gt.model.organs}
-        pair = (organ_intensity_volume(case.labels, values, case.geometry),
-                organ_intensity_volume(gt.label_map(values), values, case.geometry))
-    gt._volumes = (case, pair)
-    return pair
-
-
-# --------------------------------------------------------------------------------------------
-# The whole chain: capture the cine slice at the GT state, register, targets
-# --------------------------------------------------------------------------------------------
-
-def registration_targets(prep, gt, model, slices, *, noise_sd: float = 0.0, in_plane_factor: float = 1.0):
-    """Driven indices and targets from registering each driving slice of the planning image with the
-    slice captured at the GT state; also the registration's own error.
-
-    Returns ``(idx, targets, info)`` where ``info`` holds per-slice (A, t, time) and ``error_mm``:
-    the mean in-plane distance between registered and true positions of the slices' pancreas particles.
-    """
-    from .driving import affine_targets
-
-    case = prep.case
-    centre = prep.input_centre_mm
-    values = {o: case.label_map[o] for o in gt.model.organs}
-    planning, warped = planning_and_gt_volumes(case, gt)
-    affines, per_slice = [], []
-    for s in slices:
-        stored = extract_slice(planning, case.geometry, s.orientation, s.index, centre)
-        captured = capture_slice(warped, case.geometry, s.orientation, s.index, centre, noise_sd=noise_sd, in_plane_factor=in_plane_factor)
-        mask = slice_mask(case.labels, case.geometry, s.orientation, s.index, centre, [values[o] for o in model.organs])
-        reg = register_slices(stored, captured, centre, mask=mask)
-        if not reg.ok:
-            raise InputError(f"registration of {s.orientation} slice {s.index} gave a degenerate transform ({reg.stop}); "
-                             "targets would be nonsense")
-        affines.append((reg.A, reg.t_mm))
-        per_slice.append({"slice": str(s), "A": reg.A.tolist(), "t_mm": reg.t_mm.tolist(), "wall_s": reg.wall_s,
-                          "iterations": reg.iterations, "metric": reg.metric})
-    idx, targets = affine_targets(model, model.positions_mm, slices, affines, centre)
-    gt_pos = gt.positions_mm[np.isin(gt.model.organ_index, [gt.model.organs.index(o) for o in model.organs])]
-    pan = model.organ_slice("pancreas")[idx]
-    errs = []
-    for s in slices:
-        on = model.slice_mask(s.orientation, s.index)[idx] & pan
-        e_u, e_v = in_plane_axes(model, s.orientation)
-        d = targets[on] - gt_pos[idx][on]
-        errs.append(np.sqrt((d @ e_u) ** 2 + (d @ e_v) ** 2))
-    err = np.concatenate(errs) if errs else np.zeros(0)
-    info = {"error_mm": float(err.mean()) if err.size else float("nan"),
-            "wall_s": float(np.mean([p["wall_s"] for p in per_slice])), "slices": per_slice}
-    info["slices"][0]["A"] = np.asarray(affines[0][0])
-    info["slices"][0]["t_mm"] = np.asarray(affines[0][1])
-    return idx, targets, info

@@ -24,10 +24,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .images import ORGANS, InputError, parse_organs
+from .errors import InputError
+from .images import COMBINATIONS, ORGANS, parse_organs
 from .model import ParticleModel
 
-COMBINATIONS = ("p", "ps", "pd", "pl", "psd", "psl", "pdl", "psdl")
+#: The selectors behind README's figures, shipped with the package: the axial slice and combination
+#: model (error target) and the sagittal/coronal Dice-rank model (their training reports lie beside them).
+SELECTOR_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "selectors")
+DEFAULT_SELECTOR = os.path.join(SELECTOR_DIR, "selection_error.json")
+DEFAULT_PLANE_SELECTOR = os.path.join(SELECTOR_DIR, "selection_planes.json")
+
 FEATURES = ("position",) + tuple(f"n_{o}" for o in ORGANS)
 #: The second model's features (sagittal and coronal slices): organ particle counts only, as the paper's.
 COUNT_FEATURES = tuple(f"n_{o}" for o in ORGANS)
@@ -198,8 +204,8 @@ def split_by_row(n: int, test_fraction: float = 0.2, seed: int = 0) -> tuple[np.
 
 
 @dataclass
-class SelectionModel:
-    """A trained regressor of a condition's accuracy from its standardised features."""
+class ConditionSelector:
+    """A trained regressor of a condition's accuracy from its standardised features (the paper's selection model)."""
 
     booster: object
     target: str
@@ -232,17 +238,17 @@ class SelectionModel:
         os.replace(tmp_meta, path + ".meta.json")
 
     @staticmethod
-    def load(path: str) -> "SelectionModel":
+    def load(path: str) -> "ConditionSelector":
         import xgboost as xgb
 
         if not os.path.exists(path) or not os.path.exists(path + ".meta.json"):
-            raise InputError(f"selection model {path} (and its .meta.json) not found; train one with examples/train_selection.py")
+            raise InputError(f"selection model {path} (and its .meta.json) not found; train one with `warpmpm train`")
         booster = xgb.Booster()
         booster.load_model(path)
         booster.set_param({"nthread": 1})  # ~100 candidate rows: threads cost more than they save
         with open(path + ".meta.json") as f:
             meta = json.load(f)
-        return SelectionModel(booster, meta["target"], meta.get("params", {}), tuple(meta["features"]),
+        return ConditionSelector(booster, meta["target"], meta.get("params", {}), tuple(meta["features"]),
                               tuple(meta.get("combinations", COMBINATIONS)), tuple(meta.get("orientations", ("axial",))))
 
     def rank(self, model: ParticleModel, orientations=None, combinations=None, k: int | None = 5):
@@ -282,7 +288,7 @@ def _cv_r2(params, rounds, X, y, folds: int, seed: int, features=FEATURES) -> fl
 
 def tune_and_train(table: TrainingTable, *, split: str = "case", patience: int = 100, max_trials: int = 1000, folds: int = 5,
                    storage: str | None = None, study_name: str = "warpmpm-selection", seed: int = 0,
-                   test_fraction: float = 0.2, test_cases=None) -> tuple[SelectionModel, dict]:
+                   test_fraction: float = 0.2, test_cases=None) -> tuple[ConditionSelector, dict]:
     """Tune XGBoost with Optuna (5-fold CV mean R2 on the training rows), train on them, report.
 
     ``split``: ``case`` (no case on both sides; the honest one) or ``row`` (the paper's random rows).
@@ -332,7 +338,7 @@ def tune_and_train(table: TrainingTable, *, split: str = "case", patience: int =
     booster = _xgb_train(params, Xtr, ytr, rounds, table.features)
     orientations = tuple(sorted({k[1] for k in table.keys}))
     combos = tuple(c for c in COMBINATIONS if c in {k[3] for k in table.keys})
-    model = SelectionModel(booster, table.target, {**params, "rounds": rounds}, tuple(table.features), combos, orientations)
+    model = ConditionSelector(booster, table.target, {**params, "rounds": rounds}, tuple(table.features), combos, orientations)
     ptr, pte = model.predict(Xtr), model.predict(table.X[test])
     gain = booster.get_score(importance_type="gain")
     total = sum(gain.values()) or 1.0
@@ -382,7 +388,7 @@ def _shortfall(table: TrainingTable, chosen: float, values: np.ndarray) -> float
     return float(chosen - values.min()) if table.target not in HIGHER_IS_BETTER else float(values.max() - chosen)
 
 
-def regret(table: TrainingTable, model: SelectionModel, mask: np.ndarray | None = None, top: int = 1) -> dict[str, float]:
+def regret(table: TrainingTable, model: ConditionSelector, mask: np.ndarray | None = None, top: int = 1) -> dict[str, float]:
     """Per (case, orientation) group: how much worse the predicted-best condition is than the brute-force
     best, in the measured metric's unit (mm for error, Dice points for Dice; >= 0).
 

@@ -28,12 +28,8 @@ import numpy as np
 import warp as wp
 
 from . import kernels
-from .images import InputError
+from .errors import InputError, SimulationError
 from .model import ParticleModel
-
-
-class SimulationError(RuntimeError):
-    """The simulation produced a non-finite value or a particle tried to leave the grid."""
 
 
 @dataclass(frozen=True)

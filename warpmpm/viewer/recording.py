@@ -105,18 +105,36 @@ def optimize_recording(path: str) -> bool:
     return False
 
 
-class RunLogger:
-    """Writes one run to ``path``. ``every``: log positions every this many steps (scalars every step)."""
+class RerunRecorder:
+    """A :class:`warpmpm.recorder.Recorder` writing one run to a Rerun ``.rrd`` file.
 
-    def __init__(self, path: str, model, gt_pos: np.ndarray | None = None, every: int = 20, application: str = "warpmpm"):
+    The file is written under a temporary name beside ``path`` and renamed to ``path`` only when the
+    run closes successfully (``close(ok=True)``): an interrupted or failed run leaves no partial
+    recording that a viewer would read as complete. ``every``: log positions every this many steps
+    (scalars every step).
+    """
+
+    def __init__(self, path: str, every: int = 20, application: str = "warpmpm"):
+        import os
+
+        self.path = os.path.abspath(path)
+        self.tmp = self.path + ".part"
         self.rec = rr.RecordingStream(application)
-        self.rec.save(path)
-        self.path = path
-        self.model = model
-        self.gt_pos = gt_pos
+        self.rec.save(self.tmp)
         self.every = max(1, int(every))
         self.frame = 0
+        self.model = None
+        self.gt_pos = None
+        self.pancreas = None
+        self._closed = False
+
+    def begin(self, model, gt_positions_mm: np.ndarray | None = None) -> None:
+        self.model = model
+        self.gt_pos = gt_positions_mm
         self.pancreas = model.organ_slice("pancreas")
+        self._points("planning", self.model.positions_mm, static=True)
+        if self.gt_pos is not None:
+            self._points("gt", self.gt_pos, static=True, colour=GT_COLOUR, radius=0.4)
 
     def _points(self, prefix: str, positions: np.ndarray, static: bool = False, colour=None, radius: float = 0.6) -> None:
         for n, organ in enumerate(self.model.organs):
@@ -124,13 +142,8 @@ class RunLogger:
             c = colour or ORGAN_COLOURS.get(organ, (200, 200, 200))
             self.rec.log(f"{prefix}/{organ}", rr.Points3D(positions[sel], colors=c, radii=radius), static=static)
 
-    def log_planning(self) -> None:
-        self._points("planning", self.model.positions_mm, static=True)
-        if self.gt_pos is not None:
-            self._points("gt", self.gt_pos, static=True, colour=GT_COLOUR, radius=0.4)
-
-    def log_slices(self, slices, driven: np.ndarray, targets: np.ndarray, prep=None) -> None:
-        from warpmpm.driving import driven_indices, in_plane_axes
+    def log_slices(self, slices, driven: np.ndarray, targets_mm: np.ndarray, case=None, centre_mm=None) -> None:
+        from ..slices import driven_indices, extract_slice, in_plane_axes
 
         pos = self.model.positions_mm
         self.rec.send_blueprint(default_blueprint([f"{s.orientation}_{s.index}" for s in slices], pos.mean(0),
@@ -147,22 +160,21 @@ class RunLogger:
                                                       fill_mode="transparentfillmajorwireframe", radii=0.3), static=True)
             sel = np.isin(driven, on)
             self.rec.log(f"{name}/targets", rr.Arrows3D(origins=self.model.positions_mm[driven[sel]],
-                                                         vectors=targets[sel] - self.model.positions_mm[driven[sel]],
+                                                         vectors=targets_mm[sel] - self.model.positions_mm[driven[sel]],
                                                          colors=(255, 255, 255), radii=0.15), static=True)
-            if prep is not None and prep.case.image is not None:
-                from warpmpm.registration import extract_slice
+            if case is not None and case.image is not None and centre_mm is not None:
                 import SimpleITK as sitk
 
-                img = extract_slice(prep.case.image, prep.case.geometry, s.orientation, s.index, prep.input_centre_mm)
+                img = extract_slice(case.image, case.geometry, s.orientation, s.index, centre_mm)
                 arr = sitk.GetArrayFromImage(img)
                 lo, hi = np.percentile(arr, [1, 99])
                 self.rec.log(f"{name}/image", rr.Image(np.clip((arr - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)),
                              static=True)
 
-    def step_callback(self, estimator, step: int, rel: float, rms_mm: float) -> None:
+    def on_step(self, estimator, step: int, rel_residual: float, rms_mm: float) -> None:
         self.rec.set_time("frame", sequence=self.frame)
         self.rec.set_time("step", sequence=step)
-        self.rec.log("metrics/rel_residual", rr.Scalars(rel))
+        self.rec.log("metrics/rel_residual", rr.Scalars(rel_residual))
         self.rec.log("metrics/rms_residual_mm", rr.Scalars(rms_mm))
         if step % self.every == 0:
             pos = estimator.positions_mm()
@@ -171,28 +183,35 @@ class RunLogger:
                 err = np.linalg.norm(pos[self.pancreas] - self.gt_pos[self.pancreas], axis=1).mean()
                 self.rec.log("metrics/pancreas_error_mm", rr.Scalars(err))
 
-    def log_result(self, result, out: dict) -> None:
+    def log_result(self, positions_mm: np.ndarray, steps: int, summary: dict, table: str) -> None:
         self.rec.set_time("frame", sequence=self.frame)
-        self.rec.set_time("step", sequence=result.steps)
-        self._points("estimate", result.positions_mm)
+        self.rec.set_time("step", sequence=steps)
+        self._points("estimate", positions_mm)
         if self.gt_pos is not None:
-            err = np.linalg.norm(result.positions_mm[self.pancreas] - self.gt_pos[self.pancreas], axis=1)
+            err = np.linalg.norm(positions_mm[self.pancreas] - self.gt_pos[self.pancreas], axis=1)
             vmax = float(np.percentile(err, 95))
-            self.rec.log("error/pancreas", rr.Points3D(result.positions_mm[self.pancreas], colors=error_colours(err, vmax), radii=0.8))
+            self.rec.log("error/pancreas", rr.Points3D(positions_mm[self.pancreas], colors=error_colours(err, vmax), radii=0.8))
             self.rec.log("error/scale", rr.TextDocument(f"error colour scale: 0 mm (dark blue) to {vmax:.2f} mm (yellow, the 95th percentile)"),
                          static=True)
             self.rec.log("metrics/pancreas_error_mm", rr.Scalars(float(err.mean())))
-        from warpmpm.runner import format_table
-
-        clean = {k: v for k, v in out.items() if not k.startswith("_")}
-        text = "# warpmpm run\n\n" + format_table(clean) + "\n\n```json\n" + json.dumps(clean, indent=1, default=str) + "\n```\n"
+        text = "# warpmpm run\n\n" + table + "\n\n```json\n" + json.dumps(summary, indent=1, default=str) + "\n```\n"
         self.rec.log("run/params", rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN), static=True)
         self.frame += 1
 
-    def close(self) -> None:
-        """Finish the file and compact its chunks (``rerun rrd optimize``): the SDK writes a few steps
-        per chunk, and a viewer opening the raw file shows the newest step before all of them have
-        loaded (seen in Rerun 0.41: organs missing from the 3D view); the compacted file opens whole."""
+    def close(self, ok: bool = True) -> None:
+        """Finish the file; on success compact its chunks (``rerun rrd optimize``: the SDK writes a few
+        steps per chunk, and a viewer opening the raw file shows the newest step before all of them have
+        loaded, seen in Rerun 0.41) and rename it to ``path``; on failure delete it."""
+        import os
+
+        if self._closed:
+            return
+        self._closed = True
         self.rec.flush()
         self.rec.disconnect()
-        optimize_recording(self.path)
+        if not ok:
+            if os.path.exists(self.tmp):
+                os.remove(self.tmp)
+            return
+        optimize_recording(self.tmp)
+        os.replace(self.tmp, self.path)

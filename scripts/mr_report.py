@@ -2,7 +2,7 @@
 targets and with registration targets (the whole chain: capture, register, drive), beside the
 baselines initial, propagate and volume_registration.
 
-    python examples/sweep.py --labels L --image I --preset totalseg_mr --out runs/mr_paper.csv
+    python warpmpm sweep --labels L --image I --preset totalseg_mr --out runs/mr_paper.csv
     python examples/mr_report.py runs/mr_paper.csv --labels L --image I --preset totalseg_mr
 """
 
@@ -10,12 +10,13 @@ import argparse
 import csv
 import os
 import sys
+from dataclasses import replace
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import numpy as np  # noqa: E402
 
-from warpmpm.runner import CaseConfig, make_ground_truth, prepare_case, run_prepared  # noqa: E402
+from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared  # noqa: E402
 
 
 def main(argv=None):
@@ -42,20 +43,20 @@ def main(argv=None):
     acc = {c: [] for c in cols}
     reg_err, reg_ms = [], []
     for d in sorted(best):
-        cfg = CaseConfig(**{**base.__dict__, "deformation": d, "slices": f"axial:{best[d]['slice']}"})
+        cfg = replace(base, deformation=d, slices=f"axial:{best[d]['slice']}")
         gt = make_ground_truth(prep, cfg)
         aff = run_prepared(prep, gt, cfg)
-        reg = run_prepared(prep, gt, CaseConfig(**{**cfg.__dict__, "targets": "registration", "baselines": ()}))
-        res = {"initial": aff["results"]["initial"], "propagate": aff["results"]["propagate"],
-               "volume_registration": aff["results"]["volume_registration"], "estimate (GT affine)": aff["results"]["estimate"],
-               "estimate (registration)": reg["results"]["estimate"]}
+        reg = run_prepared(prep, gt, replace(cfg, targets="registration", baselines=()))
+        res = {"initial": aff.results["initial"], "propagate": aff.results["propagate"],
+               "volume_registration": aff.results["volume_registration"], "estimate (GT affine)": aff.estimate,
+               "estimate (registration)": reg.estimate}
         for c in cols:
-            acc[c].append((res[c]["error_mm"], res[c]["dice"]))
-        reg_err.append(reg["results"]["registration"]["error_mm"])
-        reg_ms.append(reg["results"]["registration"]["wall_s"] * 1e3)
-        cells = " | ".join(f"{res[c]['error_mm']:.2f} / {res[c]['dice']:.3f}" for c in cols)
-        print(f"| {d} | {best[d]['slice']} | {cells} | {reg_err[-1]:.2f} | {reg_ms[-1]:.0f} | {aff['results']['estimate']['steps']} | "
-              f"{aff['results']['estimate']['wall_s']:.1f} |", flush=True)
+            acc[c].append((res[c].error_mm, res[c].dice))
+        reg_err.append(reg.registration["error_mm"])
+        reg_ms.append(reg.registration["wall_s"] * 1e3)
+        cells = " | ".join(f"{res[c].error_mm:.2f} / {res[c].dice:.3f}" for c in cols)
+        print(f"| {d} | {best[d]['slice']} | {cells} | {reg_err[-1]:.2f} | {reg_ms[-1]:.0f} | {aff.estimate.steps} | "
+              f"{aff.estimate.wall_s:.1f} |", flush=True)
     cells = " | ".join(f"{np.mean([e for e, _ in acc[c]]):.2f} +- {np.std([e for e, _ in acc[c]]):.2f} / "
                        f"{np.mean([x for _, x in acc[c]]):.3f}" for c in cols)
     print(f"| mean | | {cells} | {np.mean(reg_err):.2f} | {np.mean(reg_ms):.0f} | | |")

@@ -1,40 +1,39 @@
-"""Train the condition-selection models from sweep CSVs and report them in the paper's form.
+"""Train the condition-selection models from sweep CSVs and report them in the paper's form (``warpmpm train``).
 
 The paper's first model (axial slice and organ combination; target: error or Dice averaged over the
 8 deformations; features: slice position and per-organ particle counts):
 
-    python examples/sweep.py --phantom-seeds 0,1,2,3,4,5 --phantom-resolution 3 --organs all --out runs/train_axial.csv --workers 2
-    python examples/train_selection.py runs/train_axial.csv --out runs/selection_error.json --storage sqlite:///runs/selection.db
+    warpmpm sweep --phantom-seeds 0,1,2,3,4,5 --phantom-resolution 3 --organs all --out runs/train_axial.csv --workers 2
+    warpmpm train runs/train_axial.csv --out runs/selection_error.json --storage sqlite:///runs/selection.db
 
 Its second model (sagittal and coronal slices, psdl, GT targets, driven particles excluded; target:
 the Dice rank within a case and orientation; features: particle counts only):
 
-    python examples/sweep.py --phantom-seeds 2,3,4 --phantom-resolution 3 --organs psdl --orientations sagittal,coronal \\
+    warpmpm sweep --phantom-seeds 2,3,4 --phantom-resolution 3 --organs psdl --orientations sagittal,coronal \\
         --targets gt --exclude-driven --out runs/train_planes.csv --workers 2
-    python examples/train_selection.py runs/train_planes.csv --target dice_rank --out runs/selection_planes.json
+    warpmpm train runs/train_planes.csv --target dice_rank --out runs/selection_planes.json
 
 Reports train/test R2 and RMSE for a split by case (no case on both sides; the model saved is this
 one) and by row (the paper's random split), feature importance, the selection time, and the regret
 on the held-out cases (top-1 pick, and best of the top 3 as the paper's plane rule).
 """
 
-import argparse
+from __future__ import annotations
+
 import csv
 import json
 import os
-import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from warpmpm.images import InputError  # noqa: E402
-from warpmpm.selection import TrainingTable, baseline_regret, regret, tune_and_train  # noqa: E402
+from ..errors import InputError
+from ..selection import TrainingTable, baseline_regret, regret, tune_and_train
 
 
 def selection_time_ms(model, repeats: int = 200) -> dict:
     """Time of ranking every candidate of the default phantom (built once), as a user's pre-treatment step."""
-    from warpmpm.runner import CaseConfig, prepare_case
+    from .case import prepare_case
+    from .config import CaseConfig
 
     full = prepare_case(CaseConfig(organs="p", device="cpu", particle_step=2)).full_model
     times = []
@@ -45,35 +44,20 @@ def selection_time_ms(model, repeats: int = 200) -> dict:
     return {"mean_ms": float(t.mean()), "sd_ms": float(t.std()), "median_ms": float(np.median(t)), "n_candidates": len(model.rank(full, k=None)[0])}
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("csv", nargs="+")
-    p.add_argument("--target", default="error_mm", choices=["error_mm", "dice", "dice_rank"])
-    p.add_argument("--orientations", default=None, help="keep only these orientations (default: axial, or sagittal,coronal for dice_rank)")
-    p.add_argument("--patience", type=int, default=100, help="stop tuning after this many trials without a better CV R2")
-    p.add_argument("--max-trials", type=int, default=1000)
-    p.add_argument("--test-cases", default=None, help="comma-separated cases to hold out (default: a random 20 %% of the cases)")
-    p.add_argument("--storage", default=None, help="Optuna storage, e.g. sqlite:///runs/selection.db (tuning resumes from it)")
-    p.add_argument("--splits", default="case,row", help="which splits to tune and report; the model saved is the first")
-    p.add_argument("--out", default="selection_model.json")
-    p.add_argument("--report", default=None, help="write the report as JSON here")
-    a = p.parse_args(argv)
-    try:
-        rows = []
-        for path in a.csv:
-            if not os.path.exists(path):
-                raise InputError(f"sweep CSV {path} not found")
-            with open(path) as f:
-                rows += list(csv.DictReader(f))
-        orientations = tuple(a.orientations.split(",")) if a.orientations else (
-            ("sagittal", "coronal") if a.target == "dice_rank" else ("axial",))
-        table = TrainingTable.from_sweep(rows, a.target, orientations=orientations)
-        for out_path in (a.out, a.report):
-            if out_path and not os.path.isdir(os.path.dirname(os.path.abspath(out_path))):
-                raise InputError(f"output folder {os.path.dirname(os.path.abspath(out_path))} does not exist")
-    except InputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+def train(a) -> int:
+    """Run ``warpmpm train`` with its parsed options ``a`` (see :func:`warpmpm.cli.build_parser`)."""
+    rows = []
+    for path in a.csv:
+        if not os.path.exists(path):
+            raise InputError(f"sweep CSV {path} not found")
+        with open(path) as f:
+            rows += list(csv.DictReader(f))
+    orientations = tuple(a.orientations.split(",")) if a.orientations else (
+        ("sagittal", "coronal") if a.target == "dice_rank" else ("axial",))
+    table = TrainingTable.from_sweep(rows, a.target, orientations=orientations)
+    for out_path in (a.out, a.report):
+        if out_path and not os.path.isdir(os.path.dirname(os.path.abspath(out_path))):
+            raise InputError(f"output folder {os.path.dirname(os.path.abspath(out_path))} does not exist")
     print(f"{len(rows)} simulations -> {len(table.y)} conditions ({', '.join(orientations)}) from {len(set(table.cases))} cases")
     test_cases = a.test_cases.split(",") if a.test_cases else None
     out = {"n_simulations": len(rows), "n_conditions": len(table.y), "cases": sorted(set(table.cases)), "orientations": orientations}
@@ -110,6 +94,3 @@ def main(argv=None):
         os.replace(tmp, a.report)
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,6 +1,6 @@
-"""``python -m viewer RUN.rrd`` opens a recording in the Rerun viewer;
-``python -m viewer --summary RUN.rrd`` prints its entities, timelines and counts without a display;
-``python -m viewer --screenshot OUT.png RUN.rrd`` saves a picture of the viewer showing the recording
+"""``python -m warpmpm.viewer RUN.rrd`` opens a recording in the Rerun viewer;
+``python -m warpmpm.viewer --summary RUN.rrd`` prints its entities, timelines and counts without a display;
+``python -m warpmpm.viewer --screenshot OUT.png RUN.rrd`` saves a picture of the viewer showing the recording
 (on a headless machine it starts a virtual screen with ``Xvfb`` and software Vulkan, e.g. Debian's
 ``xvfb`` and ``mesa-vulkan-drivers``)."""
 
@@ -12,7 +12,7 @@ import shutil
 import subprocess
 import sys
 
-from viewer.recording import rerun_executable
+from warpmpm.viewer.recording import rerun_executable
 
 
 def summarize(path: str) -> dict:
@@ -23,7 +23,11 @@ def summarize(path: str) -> dict:
     if not os.path.exists(path):
         raise FileNotFoundError(f"recording not found: {path}")
     out: dict[str, dict] = {}
-    for chunk in RrdReader(path).stream():
+    try:
+        chunks = list(RrdReader(path).stream())
+    except Exception as exc:  # noqa: BLE001 - Rerun raises its own types for a junk file
+        raise ValueError(f"{path} is not a readable Rerun recording ({type(exc).__name__}: {str(exc).strip()[:200]})") from None
+    for chunk in chunks:
         ent = chunk.entity_path
         if ent.startswith("/__"):
             continue
@@ -36,6 +40,8 @@ def summarize(path: str) -> dict:
                 e["points"] += [len(x) if x is not None else 0 for x in rb.column(col).to_pylist()]
         if "step" in rb.schema.names:
             e["steps"] += [int(v) for v in rb.column("step").to_pylist() if v is not None]
+    if not out:
+        raise ValueError(f"{path} holds no recorded data (empty, or not a Rerun recording)")
     return out
 
 
@@ -88,7 +94,7 @@ def screenshot(path: str, out_png: str, size: tuple[int, int] = (1600, 900), tim
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m viewer", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m warpmpm.viewer", description=__doc__)
     p.add_argument("rrd")
     p.add_argument("--summary", action="store_true", help="print entities, timelines and counts (no display needed)")
     p.add_argument("--screenshot", metavar="PNG", help="save a picture of the viewer showing the recording (Xvfb when no display)")
@@ -96,8 +102,13 @@ def main(argv=None) -> int:
     if not os.path.exists(a.rrd):
         print(f"error: recording not found: {a.rrd}", file=sys.stderr)
         return 2
+    try:
+        summary = summarize(a.rrd)  # also refuses a junk or empty file before a viewer opens it
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     if a.summary:
-        for ent, e in sorted(summarize(a.rrd).items()):
+        for ent, e in sorted(summary.items()):
             pts = f", points per row {min(e['points'])}..{max(e['points'])}" if e["points"] else ""
             steps = f", steps {min(e['steps'])}..{max(e['steps'])}" if e["steps"] else ""
             tl = ",".join(sorted(e["timelines"])) or "static"

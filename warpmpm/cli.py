@@ -1,0 +1,305 @@
+"""The ``warpmpm`` command: ``run | sweep | multi | train | view``.
+
+    warpmpm run                                  # a whole case on the built-in phantom (= examples/run_case.py)
+    warpmpm run --labels L.nii.gz --image I.nii.gz --preset totalseg_mr --json out.json --rrd out.rrd
+    warpmpm sweep --phantom-seeds 0,1 --organs all --out runs/sweep.csv --workers 2
+    warpmpm multi --phantom-seeds 0,1 --out runs/multi.csv
+    warpmpm train runs/sweep.csv --out runs/selection_error.json
+    warpmpm view out.rrd [--summary | --screenshot out.png]
+
+Exit codes: 0 success; 1 some sweep tasks failed (their rows are missing; re-run to retry); 2 bad
+input (one ``error:`` line naming it, nothing written); 3 the simulation failed; 130 interrupted
+(Ctrl-C: one line, no partial output).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from dataclasses import replace
+
+from .errors import InputError, SimulationError
+
+EXIT_TASKS_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED = 1, 2, 3, 130
+
+
+# --------------------------------------------------------------------------------------------
+# Shared option groups (parent parsers)
+# --------------------------------------------------------------------------------------------
+
+def _case_options() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("case")
+    g.add_argument("--image", help="planning image (NIfTI, MHA/MHD, NRRD or a DICOM folder)")
+    g.add_argument("--labels", help="label map on the image's grid; without it the built-in phantom is used")
+    g.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"], help="label convention")
+    g.add_argument("--phantom-resolution", type=float, default=1.0, help="phantom voxel size factor (2: 8x fewer voxels)")
+    g.add_argument("--particle-step", type=int, default=None,
+                   help="in-plane particle sampling step (default 2 for the phantom in `run`, else 1)")
+    g.add_argument("--protocol", default="paper", choices=["paper", "contact"], help="ground-truth protocol")
+    return p
+
+
+def _device_options() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("device and console")
+    g.add_argument("--device", default=None, choices=["cpu", "cuda"], help="Warp device (default: CUDA when available)")
+    g.add_argument("--verbose", action="store_true", help="show Warp's and ITK's own messages (module loads, warnings)")
+    return p
+
+
+def _selector_options() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("selection models (default: the ones shipped with warpmpm)")
+    g.add_argument("--selector", default=None, help="axial slice + organ combination model (error target)")
+    g.add_argument("--plane-selector", default=None, help="sagittal/coronal Dice-rank model")
+    return p
+
+
+def _task_options() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("cases and tasks")
+    g.add_argument("--phantom-seeds", default="0", help="comma-separated phantom seeds when no --labels")
+    g.add_argument("--deformations", default="1,2,3,4,5,6,7,8")
+    g.add_argument("--workers", type=int, default=1, help="parallel tasks (one per case x deformation)")
+    g.add_argument("--scheduler", default=None, help="'local' for a Dask LocalCluster of --workers, or a Dask scheduler address")
+    return p
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--phantom-seed", type=int, default=0, help="seed of the phantom (and of the GT perturbations)")
+    p.add_argument("--organs", default="psdl", help="organ combination: p, ps, pd, pl, psd, psl, pdl, psdl")
+    p.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); "
+                   "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
+                   "'auto:asc': psdl, that axial slice plus the best sagittal and/or coronal slice; default: mid-pancreas axial")
+    p.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (under contact: the scenario number)")
+    p.add_argument("--targets", default="affine", choices=["affine", "gt", "registration"])
+    p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
+    p.add_argument("--literal-angles", action="store_true", help="read the paper's r, g literally as r/2pi radians")
+    p.add_argument("--max-steps", type=int, default=6000)
+    p.add_argument("--no-volume-registration", action="store_true", help="skip the (slow) 3D registration baseline")
+    p.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
+    p.add_argument("--rrd-every", type=int, default=20, help="log particle positions every this many steps (scalars every step)")
+    p.add_argument("--json", help="write the results as JSON to this file")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``warpmpm`` parser with its subcommands."""
+    case, device, selector, tasks = _case_options(), _device_options(), _selector_options(), _task_options()
+    p = argparse.ArgumentParser(prog="warpmpm", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", parents=[case, device, selector], help="one whole case: GT, estimate, baselines, table",
+                       description="Estimate 3D pancreas motion from 2D slices with a multi-organ MPM model; prints the "
+                       "estimate beside the baselines. With no arguments: the built-in phantom.")
+    _add_run_options(r)
+
+    s = sub.add_parser("sweep", parents=[case, device, tasks], help="brute-force sweep (resumable CSV)",
+                       description="Brute-force sweep in the paper's form: cases x deformations x organ combinations x "
+                       "driving slices; one CSV row per simulation, resumable; prints the paper-form summary (also "
+                       "written beside the CSV as .md).")
+    s.set_defaults(phantom_resolution=2.0)
+    s.add_argument("--organs", default="psdl", help="comma-separated combinations, or 'all'")
+    s.add_argument("--orientations", default="axial")
+    s.add_argument("--targets", default="affine", choices=["affine", "gt", "registration"])
+    s.add_argument("--exclude-driven", action="store_true",
+                   help="leave the driven particles out of the metrics (the multi-direction rule; default: only with several slices)")
+    s.add_argument("--slice-stride", type=int, default=1)
+    s.add_argument("--max-steps", type=int, default=6000, help="steps per estimate before it is reported not converged")
+    s.add_argument("--out", default="runs/sweep.csv")
+
+    m = sub.add_parser("multi", parents=[case, device, tasks, selector], help="the paper's multi-direction protocol",
+                       description="The paper's multi-direction validation (psdl, GT targets, driven particles excluded): "
+                       "axial only, + coronal, + sagittal, + both, slices chosen by the selection models.")
+    m.set_defaults(phantom_resolution=3.0)
+    m.add_argument("--top", type=int, default=3, help="sagittal and coronal candidates tried")
+    m.add_argument("--out", default="runs/multi.csv")
+
+    t = sub.add_parser("train", help="train a selection model from sweep CSVs",
+                       description="Train the condition-selection models from sweep CSVs and report them in the paper's form.")
+    t.add_argument("csv", nargs="+")
+    t.add_argument("--target", default="error_mm", choices=["error_mm", "dice", "dice_rank"])
+    t.add_argument("--orientations", default=None, help="keep only these orientations (default: axial, or sagittal,coronal for dice_rank)")
+    t.add_argument("--patience", type=int, default=100, help="stop tuning after this many trials without a better CV R2")
+    t.add_argument("--max-trials", type=int, default=1000)
+    t.add_argument("--test-cases", default=None, help="comma-separated cases to hold out (default: a random 20 %% of the cases)")
+    t.add_argument("--storage", default=None, help="Optuna storage, e.g. sqlite:///runs/selection.db (tuning resumes from it)")
+    t.add_argument("--splits", default="case,row", help="which splits to tune and report; the model saved is the first")
+    t.add_argument("--out", default="selection_model.json")
+    t.add_argument("--report", default=None, help="write the report as JSON here")
+
+    v = sub.add_parser("view", help="open, summarise or picture a Rerun recording")
+    v.add_argument("rrd")
+    v.add_argument("--summary", action="store_true", help="print entities, timelines and counts (no display needed)")
+    v.add_argument("--screenshot", metavar="PNG", help="save a picture of the viewer showing the recording (Xvfb when no display)")
+    return p
+
+
+# --------------------------------------------------------------------------------------------
+# Commands
+# --------------------------------------------------------------------------------------------
+
+def _quiet(verbose: bool) -> None:
+    """Show only what the user asked for: no Warp banner or module-load lines, no ITK warnings."""
+    import warp as wp
+
+    wp.config.quiet = not verbose
+    if not verbose:
+        import SimpleITK as sitk
+
+        sitk.ProcessObject.SetGlobalWarningDisplay(False)
+
+
+def config_from_args(a):
+    """The :class:`~warpmpm.experiment.config.CaseConfig` of ``warpmpm run``'s options (checked)."""
+    from .experiment.config import CaseConfig
+
+    step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
+    baselines = ("initial", "propagate") if a.no_volume_registration else ("initial", "propagate", "volume_registration")
+    return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
+                      organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets,
+                      device=a.device, particle_step=step, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps,
+                      baselines=baselines, rrd_every=a.rrd_every)
+
+
+def cmd_run(a) -> int:
+    from .experiment.auto import auto_condition
+    from .experiment.io import check_output_path, write_json_atomic
+    from .experiment.run import run_case
+    from .experiment.tables import format_table
+
+    cfg = config_from_args(a)
+    for path, option in ((a.json, "--json"), (a.rrd, "--rrd")):
+        if path:
+            check_output_path(path, option)
+    selection = None
+    if cfg.is_auto:
+        organs, slices, selection = auto_condition(cfg, a.selector, a.plane_selector)
+        cfg = replace(cfg, organs=organs, slices=slices)
+    recorder = None
+    if a.rrd:
+        from .viewer.recording import RerunRecorder
+
+        recorder = RerunRecorder(a.rrd, every=cfg.rrd_every)
+    out = run_case(cfg, recorder)
+    out.selection = selection
+    print(format_table(out))
+    if selection is not None:
+        print(f"selected {out.organs} {','.join(out.slices)} in {selection['selection_ms']:.2f} ms "
+              f"(predicted {selection['predicted']:.2f})")
+    if a.json:
+        write_json_atomic(a.json, out)
+        print(f"wrote {a.json}")
+    if a.rrd:
+        print(f"wrote {a.rrd} (open with: warpmpm view {a.rrd})")
+    return 0
+
+
+def _tasks_common(a):
+    from .experiment.sweep import sweep_cases
+
+    if a.workers < 1:
+        raise InputError(f"--workers must be at least 1, got {a.workers}")
+    try:
+        deformations = [int(x) for x in a.deformations.split(",")]
+    except ValueError:
+        raise InputError(f"--deformations must be comma-separated integers, got {a.deformations!r}") from None
+    cases = sweep_cases(a.labels, a.image, a.preset, a.phantom_seeds, a.phantom_resolution)
+    return cases, deformations
+
+
+def _write_table(out_csv: str, table: str) -> None:
+    from .experiment.io import check_output_path
+
+    path = os.path.splitext(check_output_path(out_csv, "--out"))[0] + ".md"
+    tmp = path + ".part"
+    with open(tmp, "w") as f:
+        f.write(table + "\n")
+    os.replace(tmp, path)
+
+
+def cmd_sweep(a) -> int:
+    from .experiment.config import CaseConfig
+    from .experiment.sweep import sweep
+    from .experiment.tables import summarize
+    from .images import COMBINATIONS
+
+    if a.slice_stride < 1:
+        raise InputError(f"--slice-stride must be at least 1, got {a.slice_stride}")
+    cases, deformations = _tasks_common(a)
+    combos = COMBINATIONS if a.organs == "all" else tuple(a.organs.split(","))
+    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
+    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, device=a.device, targets=a.targets, max_steps=a.max_steps,
+                      exclude_driven=True if a.exclude_driven else None)
+    for combo in combos:
+        replace(base, organs=combo)  # each combination checked before any task starts
+    rows, failed = sweep(cases, deformations, combos, tuple(a.orientations.split(",")), a.out, protocol=a.protocol,
+                         slice_stride=a.slice_stride, base=base, scheduler=a.scheduler, workers=a.workers)
+    table = summarize(rows)
+    print(table)
+    _write_table(a.out, table)
+    return EXIT_TASKS_FAILED if failed else 0
+
+
+def cmd_multi(a) -> int:
+    from .experiment.config import CaseConfig
+    from .experiment.multi_direction import multi_direction
+    from .experiment.tables import summarize_multi
+    from .selection import DEFAULT_PLANE_SELECTOR, DEFAULT_SELECTOR
+
+    if a.top < 1:
+        raise InputError(f"--top must be at least 1, got {a.top}")
+    cases, deformations = _tasks_common(a)
+    d = os.path.dirname(os.path.abspath(a.out))
+    if not os.path.isdir(d):
+        raise InputError(f"output folder {d} for --out does not exist")
+    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, device=a.device, protocol=a.protocol)
+    rows, failed = multi_direction(cases, deformations, a.selector or DEFAULT_SELECTOR, a.plane_selector or DEFAULT_PLANE_SELECTOR,
+                                   a.out, base=base, top=a.top, workers=a.workers, scheduler=a.scheduler)
+    table = summarize_multi(rows)
+    print(table)
+    _write_table(a.out, table)
+    return EXIT_TASKS_FAILED if failed else 0
+
+
+def cmd_train(a) -> int:
+    from .experiment.train import train
+
+    return train(a)
+
+
+def cmd_view(a) -> int:
+    from .viewer.__main__ import main as view_main
+
+    argv = [a.rrd] + (["--summary"] if a.summary else []) + (["--screenshot", a.screenshot] if a.screenshot else [])
+    return view_main(argv)
+
+
+COMMANDS = {"run": cmd_run, "sweep": cmd_sweep, "multi": cmd_multi, "train": cmd_train, "view": cmd_view}
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``warpmpm`` console script; returns the exit code (module docstring)."""
+    a = build_parser().parse_args(argv)
+    _quiet(getattr(a, "verbose", False))
+    try:
+        return COMMANDS[a.command](a)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except SimulationError as exc:
+        print(f"simulation error: {exc}", file=sys.stderr)
+        return EXIT_SIMULATION
+    except KeyboardInterrupt:
+        print("interrupted: nothing was written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def run_main(argv=None) -> int:
+    """``warpmpm run`` with ``argv`` (what ``examples/run_case.py`` calls)."""
+    return main(["run", *(sys.argv[1:] if argv is None else argv)])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

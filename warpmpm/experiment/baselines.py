@@ -1,0 +1,45 @@
+"""The baselines scored beside every estimate.
+
+- ``initial``: no motion (the planning positions).
+- ``propagate``: the first driving slice's in-plane motion applied to every particle (what copying the
+  slice's motion to the whole volume gives; nearly exact under the paper protocol, whose GT applies
+  one 2D affine to every slice).
+- ``volume_registration``: 3D affine registration of the planning volume to the GT volume (the
+  paper's elastix comparison; it needs the whole 3D volume at time t, which a cine MR does not give).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+
+from ..groundtruth import GroundTruth
+from ..model import ParticleModel
+from ..registration import register_volumes_affine
+from ..slices import DrivingSlice, InPlaneAffine, in_plane_axes
+from .capture import planning_and_gt_volumes
+from .case import PreparedCase
+
+
+def propagate(model: ParticleModel, s: DrivingSlice, affine: InPlaneAffine, centre_mm: np.ndarray) -> np.ndarray:
+    """Every particle moved by the slice's in-plane motion (mm)."""
+    e_u, e_v = in_plane_axes(model, s.orientation)
+    return affine.apply(model.positions_mm, e_u, e_v, centre_mm)
+
+
+def volume_registration(prep: PreparedCase, gt: GroundTruth, model: ParticleModel) -> tuple[np.ndarray, dict]:
+    """Positions (mm) of ``model``'s particles moved by the 3D affine registered from the planning to the
+    GT volume, and ``{"wall_s", "fallback_to_identity"}``."""
+    case = prep.case
+    values = {o: case.label_map[o] for o in gt.model.organs}
+    planning, target = planning_and_gt_volumes(case, gt)
+    # As the paper's elastix comparison: both volumes masked to the organs in use (planning contour
+    # on the planning image, GT contour on the GT image), the metric over the dilated GT region.
+    use = [values[o] for o in model.organs]
+    gt_mask = np.isin(gt.label_map(values), use)
+    planning = np.where(np.isin(case.labels, use), planning, 0.0)
+    target = np.where(gt_mask, target, 0.0)
+    m_img = case.geometry.apply_to(sitk.GetImageFromArray(gt_mask.astype(np.uint8)))
+    mask = sitk.GetArrayFromImage(sitk.BinaryDilate(m_img, [3, 3, 1])).astype(bool)
+    reg = register_volumes_affine(planning, target, case.geometry, mask=mask)
+    return reg.apply(model.positions_mm), {"wall_s": reg.wall_s, "fallback_to_identity": reg.fallback}

@@ -1,0 +1,129 @@
+"""What defines one experiment run: :class:`CaseConfig`, checked once when it is built.
+
+A run reads (or generates) a planning case, simulates a pseudo ground truth, drives the model from
+one or more slices and scores the estimate beside the baselines. Every choice is typed and checked in
+``__post_init__``, so a bad value is an :class:`~warpmpm.errors.InputError` naming the field before
+any work is done (``dataclasses.replace`` checks again).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Literal, get_args
+
+from ..errors import InputError
+from ..images import PRESETS, parse_organs
+from ..slices import parse_slices
+from ..solver import SolverConfig
+
+Protocol = Literal["paper", "contact"]
+TargetKind = Literal["affine", "gt", "registration"]
+Baseline = Literal["initial", "propagate", "volume_registration"]
+
+PROTOCOLS: tuple[str, ...] = get_args(Protocol)
+TARGET_KINDS: tuple[str, ...] = get_args(TargetKind)
+BASELINES: tuple[str, ...] = get_args(Baseline)
+
+#: ``--slices`` values that ask the selection models for the condition (see :mod:`warpmpm.experiment.auto`).
+AUTO_MODES = {"auto": "a", "auto:a": "a", "auto:ac": "ac", "auto:as": "as", "auto:asc": "asc"}
+
+#: Largest phantom seed accepted: numpy's seed range, less the offsets the protocols add to it.
+MAX_SEED = 2**31 - 1 - 100_000
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+@dataclass(frozen=True)
+class CaseConfig:
+    """Everything that defines one run (the options of ``warpmpm run`` / ``examples/run_case.py``)."""
+
+    image: str | None = None
+    """Planning intensity image (NIfTI, MHA/MHD, NRRD or a DICOM folder); needs ``labels``."""
+    labels: str | None = None
+    """Label map on the image's grid; None: the built-in phantom."""
+    preset: str = "amos"
+    """Label convention: ``amos``, ``totalseg_ct`` or ``totalseg_mr`` (see :data:`warpmpm.images.PRESETS`)."""
+    phantom_seed: int = 0
+    """Seed of the phantom's anatomy; also seeds the GT's material perturbation and the contact scenario."""
+    phantom_resolution: float = 1.0
+    """Phantom voxel-size factor (2: voxels twice as wide, 8x fewer)."""
+    organs: str = "psdl"
+    """Organ combination in the paper's letters (``p``, ``ps``, ... ``psdl``); the pancreas always."""
+    slices: str | None = None
+    """Driving slices as ``axial:12,sagittal:40`` (voxel indices of the input volume), an ``auto`` mode,
+    or None for the mid-pancreas axial slice."""
+    protocol: Protocol = "paper"
+    """Ground-truth protocol: the paper's 8 slice affines, or contact-driven motion."""
+    deformation: int = 1
+    """Paper deformation type 1..8; under ``contact`` it numbers the scenario (>= 1)."""
+    targets: TargetKind = "affine"
+    """Where the driven particles' targets come from: the slice affine fitted to the GT, the GT's 3D
+    positions (an upper bound no image gives), or registration of synthetic captured slices."""
+    device: str | None = None
+    """Warp device: ``cpu``, ``cuda`` or ``cuda:N``; None: CUDA when available."""
+    particle_step: int = 1
+    """In-plane particle sampling step (1: one particle per voxel, the paper's choice)."""
+    perturb: bool = True
+    """Simulate the GT with materials perturbed by up to +-30 % per organ (no inverse crime)."""
+    literal: bool = False
+    """Read the paper's r, g literally as r/2pi radians instead of degrees."""
+    max_steps: int = 6000
+    """Steps per estimate before it is reported not converged."""
+    baselines: tuple[Baseline, ...] = ("initial", "propagate", "volume_registration")
+    """Baselines scored beside the estimate."""
+    exclude_driven: bool | None = None
+    """Leave the driven particles out of the metrics; None: only with several driving slices."""
+    rrd_every: int = 20
+    """Record particle positions every this many steps (scalars every step)."""
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    """The estimator's solver settings; the GT refines them (:func:`warpmpm.groundtruth.gt_solver_config`)."""
+
+    def __post_init__(self):
+        if self.labels is None and self.image is not None:
+            raise InputError("--image needs --labels (the label map defines the organs)")
+        for name in ("image", "labels"):
+            path = getattr(self, name)
+            if path is not None and not os.path.exists(path):
+                raise InputError(f"--{name} file not found: {path}")
+        if isinstance(self.preset, str) and self.preset not in PRESETS:
+            raise InputError(f"unknown label preset {self.preset!r}; choose one of {sorted(PRESETS)}")
+        if not _is_int(self.phantom_seed) or not (0 <= self.phantom_seed <= MAX_SEED):
+            raise InputError(f"phantom seed must be an integer in 0..{MAX_SEED}, got {self.phantom_seed!r}")
+        if not (isinstance(self.phantom_resolution, (int, float)) and math.isfinite(self.phantom_resolution)
+                and 0.25 <= self.phantom_resolution <= 16):
+            raise InputError(f"phantom resolution must be a finite number in 0.25..16, got {self.phantom_resolution!r}")
+        parse_organs(self.organs)
+        if self.slices is not None and self.slices != "" and not self.slices.startswith("auto"):
+            parse_slices(self.slices)
+        elif self.slices is not None and self.slices.startswith("auto") and self.slices not in AUTO_MODES:
+            raise InputError(f"unknown --slices {self.slices!r}; use one of {', '.join(AUTO_MODES)}")
+        if self.protocol not in PROTOCOLS:
+            raise InputError(f"unknown protocol {self.protocol!r}; use {' or '.join(PROTOCOLS)}")
+        if not _is_int(self.deformation):
+            raise InputError(f"deformation must be an integer, got {self.deformation!r}")
+        if self.protocol == "paper" and self.deformation not in range(1, 9):
+            raise InputError(f"deformation must be 1..8 under the paper protocol, got {self.deformation}")
+        if self.protocol == "contact" and not (1 <= self.deformation <= 10_000):
+            raise InputError(f"the contact scenario number (--deformation) must be in 1..10000, got {self.deformation}")
+        if self.targets not in TARGET_KINDS:
+            raise InputError(f"unknown targets {self.targets!r}; use {', '.join(TARGET_KINDS)}")
+        if self.device is not None and self.device != "cpu" and not str(self.device).startswith("cuda"):
+            raise InputError(f"unknown device {self.device!r}; use cpu or cuda")
+        if not _is_int(self.particle_step) or self.particle_step < 1:
+            raise InputError(f"particle step must be an integer >= 1, got {self.particle_step!r}")
+        if not _is_int(self.max_steps) or self.max_steps < 1:
+            raise InputError(f"max steps must be an integer >= 1, got {self.max_steps!r}")
+        bad = [b for b in self.baselines if b not in BASELINES]
+        if bad:
+            raise InputError(f"unknown baseline(s) {bad}; use {', '.join(BASELINES)}")
+        if not _is_int(self.rrd_every) or self.rrd_every < 1:
+            raise InputError(f"--rrd-every must be an integer >= 1, got {self.rrd_every!r}")
+
+    @property
+    def is_auto(self) -> bool:
+        """True when the slices (and organs) are to be chosen by the selection models."""
+        return self.slices is not None and self.slices.startswith("auto")

@@ -1,0 +1,106 @@
+"""What a run returns: :class:`Scores` per method and the whole :class:`RunResult`, each with ``to_json()``.
+
+The JSON written by ``warpmpm run --json`` is ``RunResult.to_json()``; its keys are a contract (keys
+may be added, none removed or renamed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+
+@dataclass(kw_only=True)
+class Scores:
+    """Accuracy of one method on the pancreas against the GT (:func:`warpmpm.metrics.evaluate`).
+
+    Attributes:
+        error_mm: mean particle distance to the GT (mm); p95_mm, max_mm: its 95th percentile and maximum.
+        dice: Dice of the voxelised pancreas regions. n: particles scored.
+        info: method-specific values (a baseline's time, whether it fell back to the identity...).
+    """
+
+    error_mm: float
+    p95_mm: float
+    max_mm: float
+    dice: float
+    n: int
+    info: dict = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, metrics: dict, **info) -> "Scores":
+        return cls(**{k: metrics[k] for k in ("error_mm", "p95_mm", "max_mm", "dice", "n")}, info=dict(info))
+
+    def to_json(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "info"}
+        return d | self.info
+
+
+@dataclass(kw_only=True)
+class EstimateScores(Scores):
+    """The estimate's scores and how it ran.
+
+    Attributes (beside :class:`Scores`'): steps run; wall_s of the drive loop; converged and reason
+    (the stopping rule that ended it); rms_residual_mm and rel_residual of the driven particles at the
+    end; ms_per_step.
+    """
+
+    steps: int
+    wall_s: float
+    converged: bool
+    reason: str
+    rms_residual_mm: float
+    rel_residual: float
+    ms_per_step: float
+
+
+@dataclass(kw_only=True)
+class RunResult:
+    """One run: what was run, the estimate and every baseline. ``to_json()`` is the ``--json`` file.
+
+    Attributes:
+        case, organs (letters), slices (input-volume labels), protocol, deformation, targets, device.
+        n_particles: per organ. n_driven: driven particles. excluded_driven: whether they were left out
+        of the metrics. solver: the estimator's grid, time step and damping. gains: the PID gains in
+        physical units. gt: the GT's parameters, steps and time. results: method -> :class:`Scores`.
+        registration: the slice registration's own error and time (``targets="registration"``).
+        positions_mm: the estimate's final particle positions (N, 3), not written to JSON.
+        total_wall_s, selection: filled by :func:`run_case` and the CLI.
+    """
+
+    case: str
+    organs: str
+    slices: list[str]
+    protocol: str
+    deformation: int
+    targets: str
+    device: str
+    n_particles: dict
+    n_driven: int
+    excluded_driven: bool
+    solver: dict
+    gains: dict
+    gt: dict
+    results: dict[str, Scores]
+    registration: dict | None = None
+    positions_mm: np.ndarray | None = field(default=None, repr=False)
+    total_wall_s: float | None = None
+    selection: dict | None = None
+
+    @property
+    def estimate(self) -> EstimateScores:
+        return self.results["estimate"]  # type: ignore[return-value]
+
+    def to_json(self) -> dict:
+        out = {f.name: getattr(self, f.name) for f in fields(self)
+               if f.name not in ("results", "registration", "positions_mm", "total_wall_s", "selection")}
+        out["results"] = {k: v.to_json() for k, v in self.results.items()}
+        if self.registration is not None:
+            out["results"]["registration"] = dict(self.registration)
+        if self.total_wall_s is not None:
+            out["total_wall_s"] = self.total_wall_s
+        if self.selection is not None:
+            out["selection"] = self.selection
+        return out
+

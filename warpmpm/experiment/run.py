@@ -1,0 +1,107 @@
+"""One run end to end: :func:`run_case` (prepare, ground truth, run) and :func:`run_prepared` (the
+estimate and baselines of one condition on a prepared case and its GT, reused by sweeps)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from ..driving import ConvergenceConfig, SliceDrivenEstimator
+from ..errors import InputError
+from ..groundtruth import GroundTruth
+from ..metrics import evaluate
+from ..recorder import NullRecorder, Recorder
+from ..slices import driven_indices
+from .baselines import propagate, volume_registration
+from .case import PreparedCase, prepare_case
+from .config import CaseConfig
+from .result import EstimateScores, RunResult, Scores
+from .tables import format_table
+from .targets import run_targets
+from .truth import gt_for_model, make_ground_truth
+
+
+def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder: Recorder | None = None) -> RunResult:
+    """The estimate and baselines of one (organs, slices, targets) on a prepared case and its GT."""
+    recorder = recorder or NullRecorder()
+    model = prep.model(cfg.organs)
+    gt_pos = gt_for_model(gt, model)
+    slices = prep.resolve_slices(model, cfg.slices)
+    tg = run_targets(prep, gt, model, gt_pos, slices, cfg)
+    idx, targets = tg.idx, tg.targets_mm
+    pmask = model.organ_slice("pancreas")
+    exclude_driven = cfg.exclude_driven if cfg.exclude_driven is not None else len(slices) > 1
+    excl = np.zeros(model.n, dtype=bool)
+    if exclude_driven:
+        excl[idx] = True
+    geom = prep.case.geometry
+
+    def score(pos, **info) -> Scores:
+        return Scores.of(evaluate(pos[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step), **info)
+
+    results: dict[str, Scores] = {}
+    if "initial" in cfg.baselines:
+        results["initial"] = score(model.positions_mm)
+    if "propagate" in cfg.baselines:
+        results["propagate"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm))
+    if "volume_registration" in cfg.baselines:
+        pos, info = volume_registration(prep, gt, model)
+        results["volume_registration"] = score(pos, **info)
+    recorder.begin(model, gt_pos)
+    recorder.log_slices(slices, idx, targets, prep.case, prep.centre_mm)
+    est = SliceDrivenEstimator(model, slices, driven=idx, solver_config=replace(cfg.solver, device=cfg.device),
+                               convergence=ConvergenceConfig(max_steps=cfg.max_steps), extra_points_mm=np.vstack([targets, gt_pos]),
+                               callback=recorder.on_step)
+    res = est.estimate(targets)
+    m = evaluate(res.positions_mm[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step)
+    results["estimate"] = EstimateScores(
+        **{k: m[k] for k in ("error_mm", "p95_mm", "max_mm", "dice", "n")},
+        steps=res.steps, wall_s=res.wall_s, converged=res.converged, reason=res.reason,
+        rms_residual_mm=res.final_rms_mm, rel_residual=res.final_rel_residual, ms_per_step=1e3 * res.wall_s / max(res.steps, 1))
+    out = RunResult(
+        case=prep.case.name, organs=model.letters, slices=[str(prep.to_input(s)) for s in slices], protocol=cfg.protocol,
+        deformation=cfg.deformation, targets=cfg.targets, device=str(est.mpm.device), n_particles=model.counts(),
+        n_driven=int(len(idx)), excluded_driven=bool(exclude_driven), solver=est.mpm.summary(), gains=res.gains.to_json(),
+        gt={k: v for k, v in gt.params.items() if k not in ("A",)} | {"steps": gt.steps, "wall_s": gt.wall_s},
+        results=results, registration=tg.registration, positions_mm=res.positions_mm)
+    recorder.log_result(res.positions_mm, res.steps, out.to_json(), format_table(out))
+    return out
+
+
+def check_device(device: str | None) -> None:
+    """:class:`InputError` when CUDA is asked for and none is available."""
+    if device and str(device).startswith("cuda"):
+        import warp as wp
+
+        wp.init()
+        if not wp.is_cuda_available():
+            raise InputError("--device cuda asked for, but no CUDA device is available")
+
+
+def run_case(cfg: CaseConfig, recorder: Recorder | None = None) -> RunResult:
+    """Run one whole case: prepare it, check the slices, simulate the GT, then :func:`run_prepared`.
+
+    Every input is checked before the (costly) GT simulation. The recorder, when given, is closed here
+    (``ok=False`` when the run fails or is interrupted, so a file recorder leaves nothing behind).
+    """
+    recorder = recorder or NullRecorder()
+    ok = False
+    try:
+        if cfg.is_auto:
+            raise InputError("--slices auto must be resolved first (warpmpm.experiment.auto.auto_condition)")
+        check_device(cfg.device)
+        t0 = time.perf_counter()
+        prep = prepare_case(cfg)
+        if cfg.slices not in (None, ""):
+            # every slice must be inside the volume and hold particles: fail before the (costly) GT
+            model = prep.model(cfg.organs)
+            driven_indices(model, prep.resolve_slices(model, cfg.slices))
+        gt = make_ground_truth(prep, cfg)
+        out = run_prepared(prep, gt, cfg, recorder)
+        out.total_wall_s = time.perf_counter() - t0
+        ok = True
+        return out
+    finally:
+        recorder.close(ok=ok)

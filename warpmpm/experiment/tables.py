@@ -1,0 +1,90 @@
+"""Markdown tables of results: one run (:func:`format_table`), the paper-form sweep summary
+(:func:`summarize`) and the multi-direction table beside the paper's (:func:`summarize_multi`)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..images import COMBINATIONS
+from .result import RunResult
+
+#: The paper's multi-direction table (20 MR cases x 8 deformations, psdl, GT targets, driven particles excluded):
+#: condition -> (error mm, sd mm, Dice).
+PAPER_MULTI = {"a": (4.26, 1.16, 0.610), "ac": (3.12, 0.989, 0.636), "as": (2.42, 0.584, 0.650), "asc": (2.13, 0.598, 0.662)}
+MULTI_CONDITIONS = ("a", "ac", "as", "asc")
+MULTI_NAMES = {"a": "axial only", "ac": "axial + coronal", "as": "axial + sagittal", "asc": "axial + sagittal + coronal"}
+
+
+def format_table(out: RunResult) -> str:
+    """The run's table: each baseline and the estimate with error, p95, Dice (and steps, time)."""
+    rows = ["| method | error mm | p95 mm | Dice | steps | wall s |", "|---|---|---|---|---|---|"]
+    for name in ("initial", "propagate", "volume_registration", "estimate"):
+        r = out.results.get(name)
+        if r is None:
+            continue
+        j = r.to_json()
+        steps = str(j.get("steps", ""))
+        wall = f"{j['wall_s']:.2f}" if "wall_s" in j else ""
+        rows.append(f"| {name} | {r.error_mm:.2f} | {r.p95_mm:.2f} | {r.dice:.3f} | {steps} | {wall} |")
+    head = (f"case {out.case}, organs {out.organs}, slices {','.join(out.slices)}, protocol {out.protocol}"
+            f" (deformation {out.deformation}), targets {out.targets}, device {out.device}, "
+            f"particles {sum(out.n_particles.values())} ({out.n_particles}), driven {out.n_driven}")
+    est = out.estimate
+    tail = (f"estimate: {'converged' if est.converged else 'NOT converged'} ({est.reason}) in {est.steps} steps, "
+            f"{est.ms_per_step:.2f} ms/step, RMS residual {est.rms_residual_mm:.3f} mm")
+    if out.registration is not None:
+        r = out.registration
+        tail += f"\nregistration: in-plane error of the slice's pancreas particles {r['error_mm']:.2f} mm, {r['wall_s'] * 1e3:.1f} ms per slice"
+    return head + "\n" + "\n".join(rows) + "\n" + tail
+
+
+def summarize(rows: list[dict]) -> str:
+    """Paper-form summary of sweep rows: best slice per (case, deformation, combination), then mean +- sd per
+    combination, with no estimation and ``propagate`` on the same slice beside it. Failed rows are left out."""
+    best: dict[tuple, dict] = {}
+    for r in rows:
+        if r.get("failure") or str(r.get("error_mm", "")) in ("", "nan"):
+            continue
+        key = (r["case"], r["deformation"], r["organs"])
+        if key not in best or float(r["error_mm"]) < float(best[key]["error_mm"]):
+            best[key] = r
+    lines = ["| condition | error mm | Dice | n |", "|---|---|---|---|"]
+    by_combo: dict[str, list] = {}
+    for (case, d, combo), r in best.items():
+        by_combo.setdefault(combo, []).append(r)
+    any_rows = list(best.values())
+    if any_rows:
+        ie = np.array([float(r["initial_error_mm"]) for r in any_rows])
+        idc = np.array([float(r["initial_dice"]) for r in any_rows])
+        lines.append(f"| initial (no estimation) | {ie.mean():.2f} +- {ie.std():.2f} | {idc.mean():.3f} | {len(ie)} |")
+    for combo in COMBINATIONS:
+        if combo not in by_combo:
+            continue
+        rs = by_combo[combo]
+        e = np.array([float(r["error_mm"]) for r in rs])
+        dc = np.array([float(r["dice"]) for r in rs])
+        pe = np.array([float(r["propagate_error_mm"]) for r in rs])
+        lines.append(f"| {combo}, best slice | {e.mean():.2f} +- {e.std():.2f} | {dc.mean():.3f} +- {dc.std():.3f} | {len(e)} |")
+        lines.append(f"| {combo}, propagate (same slice) | {pe.mean():.2f} +- {pe.std():.2f} | | {len(pe)} |")
+    return "\n".join(lines)
+
+
+def summarize_multi(rows: list[dict]) -> str:
+    """The multi-direction table (mean +- sd over cases x deformations) beside the paper's."""
+    lines = ["| condition | pick | error mm | Dice | initial error mm | 3D affine registration error mm | n | paper error mm | paper Dice |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    picks = sorted({r["pick"] for r in rows}, key=lambda p: (p != "top1", p))
+    for cond in MULTI_CONDITIONS:
+        for pick in picks:
+            rs = [r for r in rows if r["condition"] == cond and r["pick"] == pick]
+            if not rs:
+                continue
+            e = np.array([float(r["error_mm"]) for r in rs])
+            dc = np.array([float(r["dice"]) for r in rs])
+            ie = np.array([float(r["initial_error_mm"]) for r in rs])
+            ve = np.array([float(r.get("volume_registration_error_mm") or "nan") for r in rs])
+            pe, psd, pdice = PAPER_MULTI[cond]
+            paper = f"{pe:.2f} +- {psd:.2f} | {pdice:.3f}" if pick != "top1" else " | "
+            lines.append(f"| {MULTI_NAMES[cond]} | {pick} | {e.mean():.2f} +- {e.std():.2f} | {dc.mean():.3f} +- {dc.std():.3f} | "
+                         f"{ie.mean():.2f} +- {ie.std():.2f} | {ve.mean():.2f} +- {ve.std():.2f} | {len(e)} | {paper} |")
+    return "\n".join(lines)

@@ -1,0 +1,81 @@
+"""Running independent tasks (one per case x deformation) here, in a local process pool or on Dask.
+
+The three ways behave the same: each result is handed on as it finishes, and a task that raises is
+reported (one stderr line) and returned in the failure list without stopping the others.
+"""
+
+from __future__ import annotations
+
+import sys
+
+
+def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: str | None = None) -> list[tuple]:
+    """Call ``fn(*a)`` for every ``a`` in ``args`` and hand each result to ``on_result`` as it finishes.
+
+    ``scheduler=None``: here (``workers <= 1``) or in a local process pool of ``workers`` (spawned,
+    so each process initialises Warp itself); ``"local"``: a Dask ``LocalCluster`` of ``workers``
+    single-threaded processes; any other value: the address of a running Dask scheduler. A task that
+    raises does not stop the others: it is reported on stderr and returned as ``(args, message)``.
+    ``KeyboardInterrupt`` is never swallowed.
+    """
+    failed: list[tuple] = []
+
+    def fail(a, exc):
+        msg = f"{type(exc).__name__}: {exc}"
+        print(f"task {a[:2]} failed: {msg}", file=sys.stderr)
+        failed.append((a, msg))
+
+    if scheduler is None and workers <= 1:
+        for a in args:
+            try:
+                result = fn(*a)
+            except Exception as exc:  # noqa: BLE001 - one task's error must not lose the other tasks' rows
+                fail(a, exc)
+                continue
+            on_result(result)
+    elif scheduler is None:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+            futures = {ex.submit(fn, *a): a for a in args}
+            try:
+                for fut in cf.as_completed(futures):
+                    try:
+                        result = fut.result()
+                    except Exception as exc:  # noqa: BLE001
+                        fail(futures[fut], exc)
+                        continue
+                    on_result(result)
+            except BaseException:
+                for fut in futures:
+                    fut.cancel()
+                for proc in list(getattr(ex, "_processes", {}).values()):  # do not leave workers running
+                    proc.terminate()
+                raise
+    else:
+        from distributed import Client, LocalCluster, as_completed
+
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) if scheduler == "local" else None
+        client = Client(cluster if cluster is not None else scheduler)
+        try:
+            futures = {client.submit(fn, *a, pure=False): a for a in args}
+            for fut in as_completed(list(futures)):
+                try:
+                    result = fut.result()
+                except Exception as exc:  # noqa: BLE001
+                    fail(futures[fut], exc)
+                    continue
+                on_result(result)
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    return failed
+
+
+def report_failures(failed: list[tuple], n_tasks: int) -> None:
+    """One stderr line naming the (case, deformation) tasks that failed and why."""
+    if failed:
+        print(f"{len(failed)} of {n_tasks} tasks failed (re-run to retry them): "
+              + "; ".join(f"{a[0].get('name', 'case')} def{a[1]}: {m}" for a, m in failed), file=sys.stderr)

@@ -1,0 +1,44 @@
+"""Test scenes: blocks of one organ's material and two models merged into one scene.
+
+They are the scenes of the solver tests, the FEM comparison and the benchmarks; the planning models of
+real cases come from :func:`warpmpm.model.build_model`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+from .images import ORGANS, Geometry
+from .model import PAPER_MATERIALS, Material, ParticleModel
+
+
+def block_model(
+    shape: tuple[int, int, int],
+    spacing_mm: tuple[float, float, float] = (2.0, 2.0, 2.0),
+    organ: str = "pancreas",
+    origin_mm: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    materials: dict[str, Material] | None = None,
+) -> ParticleModel:
+    """A rectangular block of one organ's material, one particle per voxel: the test scene.
+
+    ``shape`` is the number of voxels along x, y, z; the block's grid is the volume itself.
+    """
+    geom = Geometry(tuple(int(s) for s in shape), tuple(float(s) for s in spacing_mm), tuple(float(o) for o in origin_mm))
+    kk, jj, ii = np.meshgrid(*[np.arange(s) for s in shape[::-1]], indexing="ij")
+    ijk = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1).astype(np.int32)
+    mats = dict(PAPER_MATERIALS)
+    mats.update(materials or {})
+    return ParticleModel(geom.index_to_world(ijk), np.zeros(len(ijk), dtype=np.int32), (organ,), ijk,
+                         np.full(len(ijk), geom.voxel_volume_mm3), {organ: mats[organ]}, geom)
+
+
+def merge_models(a: ParticleModel, b: ParticleModel) -> ParticleModel:
+    """Two models with different organs in one scene (test scenes of touching bodies)."""
+    organs = tuple(o for o in ORGANS if o in a.organs or o in b.organs)
+    if set(a.organs) & set(b.organs):
+        raise InputError("merge_models needs models of different organs")
+    idx = np.concatenate([[organs.index(a.organs[i]) for i in a.organ_index], [organs.index(b.organs[i]) for i in b.organ_index]]).astype(np.int32)
+    mats = {**a.materials, **b.materials}
+    return ParticleModel(np.vstack([a.positions_mm, b.positions_mm]), idx, organs, np.vstack([a.voxel_ijk, b.voxel_ijk]),
+                         np.concatenate([a.volume_mm3, b.volume_mm3]), {o: mats[o] for o in organs}, a.geometry)
