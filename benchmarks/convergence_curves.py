@@ -37,7 +37,7 @@ def main(argv=None):
     p.add_argument("--every", type=int, default=50)
     p.add_argument("--out", default="benchmarks/damping.png")
     a = p.parse_args(argv)
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines
     prep = prepare_case(CaseConfig(particle_step=2, device="cpu"))
     model = prep.full_model
     sl = prep.resolve_slices(model, None)

@@ -138,7 +138,7 @@ def main(argv=None):
     p.add_argument("--stream", type=int, default=0)
     p.add_argument("--out", default="benchmarks/error_vs_time.png")
     a = p.parse_args(argv)
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines
     wp.init()
     device = a.device or ("cuda" if wp.is_cuda_available() else "cpu")
     print(f"device {device} ({wp.get_device(device).name}), {os.cpu_count()} cores")

@@ -55,7 +55,7 @@ def main(argv=None):
     p.add_argument("--device", default=None)
     p.add_argument("--phantom-resolution", type=float, default=1.0, help="phantom voxel size factor (3: the selection sweep's)")
     a = p.parse_args(argv)
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines
     wp.init()
     device = a.device or ("cuda" if wp.is_cuda_available() else "cpu")
     prep = prepare_case(CaseConfig(particle_step=a.particle_step, device=device, phantom_resolution=a.phantom_resolution))

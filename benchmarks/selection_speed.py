@@ -48,7 +48,7 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=200)
     p.add_argument("--device", default="cpu")
     a = p.parse_args(argv)
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines
     axial = ConditionSelector.load(a.selector)
     plane = ConditionSelector.load(a.plane_selector) if a.plane_selector else None
     cases = [("phantom (default, step 2)", CaseConfig(particle_step=2, device=a.device, baselines=()))]

@@ -152,7 +152,7 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=0, help="timed steps (default: enough for ~3 s, at least 5)")
     p.add_argument("--no-taichi", action="store_true")
     a = p.parse_args(argv)
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines
     wp.init()
     device = a.device or ("cuda" if wp.is_cuda_available() else "cpu")
     name = wp.get_device(device).name

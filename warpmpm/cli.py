@@ -86,16 +86,18 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``warpmpm`` parser with its subcommands."""
-    case, device, selector, tasks = _case_options(), _device_options(), _selector_options(), _task_options()
+    # fresh parent parsers per subcommand: argparse shares a parent's actions, so one subcommand's
+    # set_defaults (the sweep's phantom resolution) would otherwise change every other's
+    case, device, selector, tasks = _case_options, _device_options, _selector_options, _task_options
     p = argparse.ArgumentParser(prog="warpmpm", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
 
-    r = sub.add_parser("run", parents=[case, device, selector], help="one whole case: GT, estimate, baselines, table",
+    r = sub.add_parser("run", parents=[case(), device(), selector()], help="one whole case: GT, estimate, baselines, table",
                        description="Estimate 3D pancreas motion from 2D slices with a multi-organ MPM model; prints the "
                        "estimate beside the baselines. With no arguments: the built-in phantom.")
     _add_run_options(r)
 
-    s = sub.add_parser("sweep", parents=[case, device, tasks], help="brute-force sweep (resumable CSV)",
+    s = sub.add_parser("sweep", parents=[case(), device(), tasks()], help="brute-force sweep (resumable CSV)",
                        description="Brute-force sweep in the paper's form: cases x deformations x organ combinations x "
                        "driving slices; one CSV row per simulation, resumable; prints the paper-form summary (also "
                        "written beside the CSV as .md).")
@@ -109,7 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--max-steps", type=int, default=6000, help="steps per estimate before it is reported not converged")
     s.add_argument("--out", default="runs/sweep.csv")
 
-    m = sub.add_parser("multi", parents=[case, device, tasks, selector], help="the paper's multi-direction protocol",
+    m = sub.add_parser("multi", parents=[case(), device(), tasks(), selector()], help="the paper's multi-direction protocol",
                        description="The paper's multi-direction validation (psdl, GT targets, driven particles excluded): "
                        "axial only, + coronal, + sagittal, + both, slices chosen by the selection models.")
     m.set_defaults(phantom_resolution=3.0)
@@ -144,11 +146,24 @@ def _quiet(verbose: bool) -> None:
     """Show only what the user asked for: no Warp banner or module-load lines, no ITK warnings."""
     import warp as wp
 
-    wp.config.quiet = not verbose
-    if not verbose:
-        import SimpleITK as sitk
+    wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_ERROR
+    if verbose:
+        return
+    import SimpleITK as sitk
 
-        sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    # Warp's native library prints "CUDA driver not found" straight to file descriptor 2 on a machine
+    # without a GPU, whatever the log level: initialise it with that descriptor muted (a run that asks
+    # for CUDA still gets a clear error from warpmpm when none is there).
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def config_from_args(a):
