@@ -18,6 +18,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
+
 import warp as wp  # noqa: E402
 
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
@@ -61,6 +63,8 @@ def main(argv=None):
                 est.estimate(tg)
             curves[(d, cfl, factor)] = pts
             print(f"deformation {d}, CFL {cfl}, damping x{factor:g}: " + " ".join(f"{s}:{e:.2f}" for s, e in pts), flush=True)
+    raw.save("convergence_curves", [{"deformation": d, "cfl": c, "damping_factor": f, "step_error_mm": pts}
+                                    for (d, c, f), pts in curves.items()])
     import matplotlib
 
     matplotlib.use("Agg")

@@ -24,6 +24,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
+
 import warp as wp  # noqa: E402
 
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
@@ -154,6 +156,8 @@ def main(argv=None):
         print(f"| {r['step']} | {r['ppc']:g} | {r['th_d']} | {solver} | {r['n']} | {r['error']:.2f} | {r['wall']:.2f} | {r['steps']:.0f} | "
               f"{'yes' if r in front else ''} |")
     print(f"| initial (no estimation) | | | | | {np.mean([r['initial'] for r in rows]):.2f} | | | |")
+    raw.save("error_vs_time" if a.labels is None else "error_vs_time_" + os.path.basename(os.path.dirname(os.path.abspath(a.labels))),
+             [dict(r, pareto=r in front) for r in rows])
     print("| paper, psdl best slice (AMOS, 96-core CPU) | | | | | 5.11 | 2587 | | |")
     try:
         import matplotlib

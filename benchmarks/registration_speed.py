@@ -17,8 +17,10 @@ import SimpleITK as sitk
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+import raw  # noqa: E402
 from warpmpm.phantom import make_phantom  # noqa: E402
-from warpmpm.registration import extract_slice, register_slices, resample_slice_affine, slice_mask  # noqa: E402
+from warpmpm.registration import register_slices, resample_slice_affine, slice_mask  # noqa: E402
+from warpmpm.slices import extract_slice  # noqa: E402
 
 
 def main():
@@ -42,6 +44,7 @@ def main():
     print(f"slice 256x256, 1.0 mm, organ pixels {len(pts)}, {os.cpu_count()} cores")
     print("| metric | sampling | median ms | RMS error mm | iterations |")
     print("|---|---|---|---|---|")
+    out = []
     for metric in ("correlation", "meansquares", "mattes"):
         for sampling in (0.25, 1.0):
             times, errs = [], []
@@ -51,6 +54,8 @@ def main():
                 times.append(time.perf_counter() - t0)
                 errs.append(np.sqrt(np.mean(np.sum((pts @ reg.A.T + reg.t_mm - (pts @ A.T + t)) ** 2, axis=1))))
             print(f"| {metric} | {sampling} | {np.median(times) * 1e3:.1f} | {np.median(errs):.3f} | {reg.iterations} |")
+            out.append({"metric": metric, "sampling": sampling, "times_s": times, "rms_errors_mm": errs, "iterations": reg.iterations})
+    raw.save("registration_speed", out)
 
 
 if __name__ == "__main__":

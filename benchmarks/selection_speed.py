@@ -22,6 +22,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
+
 import warp as wp  # noqa: E402
 
 from dataclasses import replace  # noqa: E402
@@ -62,6 +64,7 @@ def main(argv=None):
     print(f"machine: {platform.node()} ({os.cpu_count()} cores), device {a.device}\n")
     print("| case | particles | model | candidates | choice median ms | p95 ms | one simulation s | simulation / choice |")
     print("|---|---|---|---|---|---|---|---|")
+    out = []
     for name, cfg in cases:
         prep = prepare_case(cfg)
         full = prep.full_model
@@ -72,9 +75,12 @@ def main(argv=None):
         run_prepared(prep, gt, replace(cfg, organs=combo, slices=prep.label(orientation, k)))
         sim = time.perf_counter() - t0
         print(f"| {name} | {full.n} | axial (slice x combination) | {n} | {med:.2f} | {p95:.2f} | {sim:.2f} | {sim / (med / 1e3):,.0f} |")
+        out.append({"case": name, "particles": full.n, "model": "axial", "candidates": n, "median_ms": med, "p95_ms": p95, "simulation_s": sim})
         if plane is not None:
             med, p95, n = time_rank(plane, full, ("sagittal", "coronal"), a.repeats)
             print(f"| {name} | {full.n} | sagittal + coronal (psdl) | {n} | {med:.2f} | {p95:.2f} | | |")
+            out.append({"case": name, "particles": full.n, "model": "planes", "candidates": n, "median_ms": med, "p95_ms": p95})
+    raw.save("selection_speed", out)
     print("\npaper: 1.48 +- 0.151 ms per choice (20-35 slices, 3 surrounding organs)")
 
 

@@ -23,6 +23,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
+
 import warp as wp  # noqa: E402
 
 from warpmpm.scenes import block_model, merge_models  # noqa: E402
@@ -176,6 +178,8 @@ def main(argv=None):
     print("|---|---|---|---|---|---|---|---|")
     for n, g, tw, tt, bpp, grid in rows:
         print(f"| {n} | {g[0]}x{g[1]}x{g[2]} | {tw * 1e3:.3f} | {n / tw / 1e6:.2f} | {tt * 1e3:.3f} | {tt / tw:.2f} | {bpp:.0f} | {grid / 1e6:.1f} |")
+    raw.save("solver_step", [{"particles": n, "grid": list(g), "warpmpm_s_per_step": tw, "taichi_s_per_step": tt,
+                              "bytes_per_particle": bpp, "grid_bytes": grid} for n, g, tw, tt, bpp, grid in rows])
 
 
 if __name__ == "__main__":
