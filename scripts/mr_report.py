@@ -2,8 +2,8 @@
 targets and with registration targets (the whole chain: capture, register, drive), beside the
 baselines initial, propagate and volume_registration.
 
-    python warpmpm sweep --labels L --image I --preset totalseg_mr --out runs/mr_paper.csv
-    python examples/mr_report.py runs/mr_paper.csv --labels L --image I --preset totalseg_mr
+    warpmpm sweep --labels L --image I --preset totalseg_mr --out runs/mr_paper.csv
+    python scripts/mr_report.py runs/mr_paper.csv --labels L --image I --preset totalseg_mr
 """
 
 import argparse
