@@ -22,13 +22,16 @@ ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 
 
 def test_paper_affine_table():
-    A = paper_affine(1)
-    r, g = np.deg2rad(-2), np.deg2rad(-2)
-    R = np.array([[np.cos(r), -np.sin(r)], [np.sin(r), np.cos(r)]])
-    G = np.array([[1, np.tan(g)], [np.tan(g), 1]])
-    np.testing.assert_allclose(A, R @ G * 0.8)
+    # closed form of R(r) G(g) S(s) when r = g (deformations 1 and 8): [[s cos 2r / cos r, 0], [2 s sin r, s / cos r]]
+    np.testing.assert_allclose(paper_affine(1), [[0.79853769, 0.0], [-0.05583919, 0.80048764]], atol=1e-8)
+    np.testing.assert_allclose(paper_affine(8), [[1.19780653, 0.0], [0.08375879, 1.20073145]], atol=1e-8)
+    # det A = s^2 (1 - tan^2 g) for every type; r and g read as degrees
+    for d, (r, g, s) in PAPER_DEFORMATIONS.items():
+        assert np.linalg.det(paper_affine(d)) == pytest.approx(s * s * (1 - np.tan(np.deg2rad(g)) ** 2), rel=1e-12)
     assert len(PAPER_DEFORMATIONS) == 8
-    assert not np.allclose(paper_affine(1, literal=True), A)
+    # the literal reading r / 2 pi radians: 2 / 2 pi = 0.318 rad, a far larger angle
+    lit = paper_affine(1, literal=True)
+    assert np.linalg.det(lit) == pytest.approx(0.64 * (1 - np.tan(-1 / np.pi) ** 2), rel=1e-12)
 
 
 def test_paper_gt_moves_slice_by_its_affine(tiny_model):

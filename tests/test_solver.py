@@ -82,7 +82,7 @@ def test_uniaxial_stretch_gives_youngs_modulus(organ):
     L0 = (i2 - i1) * h
     L = x[pm.voxel_ijk[:, 0] == i2, 0].mean() - x[pm.voxel_ijk[:, 0] == i1, 0].mean()
     strain = (L - L0) / L0
-    assert stress / strain == pytest.approx(E, rel=0.06)
+    assert stress / strain == pytest.approx(E, rel=0.02)  # measured: within 1.1 % (pancreas), 0.8 % (duodenum)
 
 
 def test_contact_no_interpenetration_soft_deforms_more():
@@ -113,7 +113,9 @@ def test_contact_no_interpenetration_soft_deforms_more():
 
 def test_stiff_contact_stays_finite_for_2000_steps():
     pm = two_blocks()
-    m = MPMModel(pm, SolverConfig(**CPU))
+    # real densities and no damping: the impact is a real collision (under mass scaling the soft block
+    # would weigh ~1500x less than the stiff one and barely move it)
+    m = MPMModel(pm, SolverConfig(damping_per_s=0.0, mass_scaling=False, **CPU))
     s = MPMSolver(m)
     a, b = m.state(), m.state()
     v = np.zeros((pm.n, 3), dtype=np.float32)
@@ -123,11 +125,21 @@ def test_stiff_contact_stays_finite_for_2000_steps():
     x = a.positions_mm()
     assert np.all(np.isfinite(x)) and np.all(np.isfinite(a.F.numpy()))
     assert np.abs(x - pm.positions_mm).max() < 30.0
+    # the soft block did hit the stiff one: the stiff block was pushed along +x through the shared grid,
+    # and no particle crossed the interface
+    d = x - pm.positions_mm
+    stiff = pm.organ_index == 1
+    assert d[stiff, 0].mean() > 0.3
+    assert x[~stiff, 0].max() < x[stiff, 0].min()
+    p0 = (m.mass_kg[:, None] * v).sum(0)  # no external force: the collision keeps the momentum
+    p1 = (m.mass_kg[:, None] * a.v.numpy()).sum(0)
+    assert np.linalg.norm(p1 - p0) < 1e-3 * np.linalg.norm(p0)
 
 
 @pytest.mark.parametrize("F0", [
     np.diag([0.5, 1.0, 1.0]),                                   # 50 % compression
-    np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),  # 90 degree rotation
+    # 90 degree rotation of a 30 % stretch: the body must shed the stretch and keep the rotation
+    np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ np.diag([1.3, 1.0, 1.0]),
     np.eye(3) * 0.1 ** (1 / 3),                                  # near inversion, J = 0.1
 ])
 def test_extreme_deformations_stay_finite_and_recover(F0):
@@ -141,9 +153,13 @@ def test_extreme_deformations_stay_finite_and_recover(F0):
     assert np.all(np.isfinite(F)) and np.all(np.isfinite(a.positions_mm()))
     J = np.linalg.det(F)
     assert np.abs(J.mean() - 1.0) < 0.1  # released, the body returns toward its rest volume
-    # rotation-invariance: the rotated body's stretch U (polar) is near identity
+    # rotation-invariance: the rotated body's stretch U (polar) is near identity, its rotation kept
     U = np.array([np.linalg.svd(f, compute_uv=False) for f in F[:20]])
     assert np.abs(U - 1).max() < 0.2
+    R0 = np.linalg.svd(F0)[0] @ np.linalg.svd(F0)[2]
+    if not np.allclose(R0, np.eye(3)):  # the rotated case: the 90 degrees are kept (a released stretch, not a rotation)
+        R = [np.linalg.svd(f)[0] @ np.linalg.svd(f)[2] for f in F[:20]]
+        assert max(np.abs(r - R0).max() for r in R) < 0.1
 
 
 def test_forces_at_clamp_limit_stay_finite():
@@ -157,6 +173,10 @@ def test_forces_at_clamp_limit_stay_finite():
     with pytest.warns(RuntimeWarning):
         res = est.estimate(targets)
     assert np.all(np.isfinite(res.positions_mm))
+    # the clamped force still pulls the driven layer toward its target (the integral may overshoot it a little)
+    rise = (res.positions_mm[top] - pm.positions_mm[top])[:, 2].mean()
+    assert 3.0 < rise < 27.5
+    assert res.rms_history_mm[-1] < 0.9 * res.rms_history_mm[0]
 
 
 def test_dt_above_limit_refused():

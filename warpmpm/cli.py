@@ -37,6 +37,8 @@ def _case_options() -> argparse.ArgumentParser:
     g.add_argument("--phantom-resolution", type=float, default=1.0, help="phantom voxel size factor (2: 8x fewer voxels)")
     g.add_argument("--particle-step", type=int, default=None,
                    help="in-plane particle sampling step (default 2 for the phantom in `run`, else 1)")
+    g.add_argument("--lattice", default="auto", choices=["auto", "voxel", "isotropic"],
+                   help="particle lattice: one per voxel, or isotropic inside the interpolated organs (auto: for thick slices)")
     g.add_argument("--protocol", default="paper", choices=["paper", "contact"], help="ground-truth protocol")
     return p
 
@@ -78,6 +80,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
     p.add_argument("--literal-angles", action="store_true", help="read the paper's r, g literally as r/2pi radians")
     p.add_argument("--max-steps", type=int, default=6000)
+    p.add_argument("--wait-settled", action="store_true",
+                   help="run the estimate on until the whole model has settled, not only the driven slice (slower)")
     p.add_argument("--no-volume-registration", action="store_true", help="skip the (slow) 3D registration baseline")
     p.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
     p.add_argument("--rrd-every", type=int, default=20, help="log particle positions every this many steps (scalars every step)")
@@ -142,9 +146,19 @@ def build_parser() -> argparse.ArgumentParser:
 # Commands
 # --------------------------------------------------------------------------------------------
 
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    return f"warning: {message}\n"
+
+
 def _quiet(verbose: bool) -> None:
-    """Show only what the user asked for: no Warp banner or module-load lines, no ITK warnings."""
+    """Show only what the user asked for: no Warp banner or module-load lines, no ITK warnings; our own
+    warnings as one ``warning:`` line each."""
+    import warnings
+
     import warp as wp
+
+    if not verbose:
+        warnings.formatwarning = _one_line_warning
 
     wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_ERROR
     if verbose:
@@ -174,7 +188,7 @@ def config_from_args(a):
     baselines = ("initial", "propagate") if a.no_volume_registration else ("initial", "propagate", "volume_registration")
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
                       organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets,
-                      device=a.device, particle_step=step, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps,
+                      device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every)
 
 
@@ -245,7 +259,7 @@ def cmd_sweep(a) -> int:
     cases, deformations = _tasks_common(a)
     combos = COMBINATIONS if a.organs == "all" else tuple(a.organs.split(","))
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
-    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, device=a.device, targets=a.targets, max_steps=a.max_steps,
+    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device, targets=a.targets, max_steps=a.max_steps,
                       exclude_driven=True if a.exclude_driven else None)
     for combo in combos:
         replace(base, organs=combo)  # each combination checked before any task starts
@@ -269,7 +283,8 @@ def cmd_multi(a) -> int:
     d = os.path.dirname(os.path.abspath(a.out))
     if not os.path.isdir(d):
         raise InputError(f"output folder {d} for --out does not exist")
-    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, device=a.device, protocol=a.protocol)
+    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device,
+                      protocol=a.protocol)
     rows, failed = multi_direction(cases, deformations, a.selector or DEFAULT_SELECTOR, a.plane_selector or DEFAULT_PLANE_SELECTOR,
                                    a.out, base=base, top=a.top, workers=a.workers, scheduler=a.scheduler)
     table = summarize_multi(rows)

@@ -48,13 +48,41 @@ class ConvergenceConfig:
     settled when the residual stops changing in its third decimal, and TH_D = 4 spends 1.8x the steps
     for 0.02 mm (phantom, 8 deformations; benchmarks/README.md). ``ConvergenceConfig.paper()`` gives
     the paper's values.
+
+    Those rules watch only the driven particles. Two more checks say what the stop means:
+    a frame that stops by stagnation with its driven RMS residual above ``stall_mm`` is *stalled* (it
+    settled far from its targets: an unreachable target, a collapsed element), not converged; and the
+    whole model's motion is measured every ``th_s`` steps (the 99th percentile of the particles'
+    displacement over the last ``th_s`` steps): below ``settle_mm`` the body has *settled*.
+    With ``wait_settled`` a frame runs on until the body has settled too.
     """
 
     th_v: float = 0.0015
+    """Relative residual threshold (TH_V)."""
     th_s: int = 100
+    """Consecutive steps a rule must hold (TH_S); also the window of the body-motion check."""
     th_d: int = 3
+    """Decimals at which the residual must stop changing (TH_D; the paper's 4 with :meth:`paper`)."""
     max_steps: int = 6000
+    """Steps before a frame is reported not converged."""
     min_steps: int = 0
+    """Steps before any rule may stop a frame."""
+    stall_mm: float | None = None
+    """Driven RMS residual (mm) above which a stagnated frame is ``stalled``; None: a quarter of the grid cell."""
+    settle_mm: float = 0.05
+    """The body has settled when the 99th-percentile particle moved less than this (mm) in the last ``th_s`` steps."""
+    wait_settled: bool = False
+    """Keep stepping after the residual rule until the body has settled (or ``max_steps``)."""
+
+    def __post_init__(self):
+        for name in ("th_s", "th_d", "max_steps", "min_steps"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < (0 if name == "min_steps" else 1):
+                raise InputError(f"ConvergenceConfig.{name} must be a positive integer, got {v!r}")
+        for name in ("th_v", "settle_mm") + (("stall_mm",) if self.stall_mm is not None else ()):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise InputError(f"ConvergenceConfig.{name} must be a finite number > 0, got {v!r}")
 
     @classmethod
     def paper(cls) -> "ConvergenceConfig":
@@ -63,35 +91,50 @@ class ConvergenceConfig:
 
 
 class ConvergenceMonitor:
-    """Feeds on one relative residual per step and says when a stopping rule is met.
+    """Feeds on the relative residual (and the RMS residual in mm) of every step, and on the body's
+    motion every ``th_s`` steps, and says when to stop.
 
-    ``reason`` is ``"threshold"`` (TH_V), ``"stagnation"`` (TH_D) or ``"max_steps"``.
+    ``reason``: ``"threshold"`` (TH_V) or ``"stagnation"`` (TH_D): converged; ``"stalled"``: stagnated
+    with the RMS residual above ``stall_mm``; ``"max_steps"``.
     """
 
-    def __init__(self, config: ConvergenceConfig | None = None):
+    def __init__(self, config: ConvergenceConfig | None = None, stall_mm: float = float("inf")):
         self.config = config or ConvergenceConfig()
+        self.stall_mm = self.config.stall_mm if self.config.stall_mm is not None else stall_mm
         self.below = 0
         self.same = 0
         self.previous: float | None = None
         self.steps = 0
         self.reason: str | None = None
+        self.body_motion_mm: float = float("nan")
 
-    def update(self, residual: float) -> bool:
+    @property
+    def settled(self) -> bool:
+        return self.body_motion_mm < self.config.settle_mm
+
+    def observe_body(self, motion_mm: float) -> None:
+        """The 99th-percentile particle displacement (mm) over the last ``th_s`` steps."""
+        self.body_motion_mm = float(motion_mm)
+
+    def update(self, residual: float, rms_mm: float = 0.0) -> bool:
         c = self.config
         self.steps += 1
         if not math.isfinite(residual):
-            raise InputError(f"non-finite residual at step {self.steps}")
+            raise SimulationError(f"non-finite residual at step {self.steps}: the simulation diverged")
         self.below = self.below + 1 if residual < c.th_v else 0
         rounded = round(residual, c.th_d)
         self.same = self.same + 1 if (self.previous is not None and rounded == self.previous) else 0
         self.previous = rounded
+        self.reason = None
         if self.steps < c.min_steps:
             return False
         if self.below >= c.th_s:
             self.reason = "threshold"
         elif self.same >= c.th_s:
-            self.reason = "stagnation"
-        elif self.steps >= c.max_steps:
+            self.reason = "stagnation" if rms_mm <= self.stall_mm else "stalled"
+        if self.reason is not None and c.wait_settled and not self.settled and self.steps < c.max_steps:
+            self.reason = None  # the driven slice has converged; the body has not settled yet
+        if self.reason is None and self.steps >= c.max_steps:
             self.reason = "max_steps"
         return self.reason is not None
 
@@ -204,8 +247,11 @@ class DriveResult:
     """One frame's estimate.
 
     Attributes: positions_mm (N, 3) final world positions; steps; wall_s; residual_history
-    (relative residual per step); rms_history_mm; converged; reason (which rule stopped it);
-    final_rel_residual; final_rms_mm; gains (resolved, physical units).
+    (relative residual per step); rms_history_mm; converged; reason (which rule stopped it:
+    threshold, stagnation, stalled, max_steps); final_rel_residual; final_rms_mm; gains (resolved,
+    physical units); settled and body_motion_mm (the 99th-percentile particle displacement over the
+    last TH_S steps: whether the whole model had stopped moving, not only the driven slice);
+    min_det_f (the smallest volume ratio det F of any particle: near 0 or below, an element collapsed).
     """
 
     positions_mm: np.ndarray
@@ -216,6 +262,9 @@ class DriveResult:
     converged: bool
     reason: str
     gains: Gains | None = None
+    settled: bool = False
+    body_motion_mm: float = float("nan")
+    min_det_f: float = float("nan")
 
     @property
     def final_rel_residual(self) -> float:
@@ -256,7 +305,8 @@ class SliceDrivenEstimator:
         self.slices = list(slices) if slices else []
         self.driven = driven_indices(model, self.slices) if driven is None else np.asarray(driven, dtype=np.int64)
         if self.driven.size == 0:
-            raise InputError("the driven particle set is empty")
+            raise InputError("no particle to drive: the driving slices hold none of this model's particles"
+                             + (f" (particle sampling step {model.sampling_step} leaves none on them)" if model.sampling_step > 1 else ""))
         if self.driven.min() < 0 or self.driven.max() >= model.n:
             raise InputError("driven particle indices outside the model")
         self.mpm = MPMModel(model, solver_config, extra_points_mm)
@@ -353,7 +403,9 @@ class SliceDrivenEstimator:
         if np.any(targets_mm < lo) or np.any(targets_mm > hi):
             raise InputError("targets lie outside the simulation grid; build the estimator with extra_points_mm covering them "
                              f"or a larger SolverConfig.margin_mm (now {self.mpm.config.margin_mm} mm)")
-        conv = ConvergenceMonitor(convergence or self.convergence)
+        conv = ConvergenceMonitor(convergence or self.convergence, stall_mm=0.25 * self.mpm.dx_mm)
+        window = conv.config.th_s
+        last_x = self.state.x.numpy().copy()  # on the CPU .numpy() is a view of the live buffer
         self._target.assign(self.mpm.to_local_m(targets_mm))
         if carry_force and self.frames > 0:
             self._bias.assign(self._bias.numpy() + self.gains.ki_per_s3 * self._integral.numpy())
@@ -369,6 +421,10 @@ class SliceDrivenEstimator:
         step = 0
         while not done:
             self._run_batch()
+            if (step + self.sync_every) // window != step // window:  # the body's motion over the last window
+                x = self.state.x.numpy().copy()
+                conv.observe_body(float(np.percentile(np.linalg.norm(x - last_x, axis=1), 99)) * 1e3)
+                last_x = x
             sums = self._sums.numpy()
             for e2, r2 in sums:
                 step += 1
@@ -377,7 +433,7 @@ class SliceDrivenEstimator:
                 rms_hist.append(math.sqrt(e2 / nd) * 1e3)
                 if self.callback is not None:
                     self.callback(self, step, rel, rms_hist[-1])
-                if conv.update(rel):
+                if conv.update(rel, rms_hist[-1]):
                     done = True
                     break
         self.solver.check()
@@ -385,9 +441,20 @@ class SliceDrivenEstimator:
         self._force.zero_()
         self.frames += 1
         # on a GPU the loop runs whole batches of sync_every steps: report the steps actually run
+        det = np.linalg.det(self.state.F.numpy().astype(np.float64))
+        min_det, collapsed = float(det.min()), float(np.mean(det < 0.1))
         result = DriveResult(self.positions_mm(), self._steps_run(len(rel_hist)), wall, np.asarray(rel_hist), np.asarray(rms_hist),
-                             conv.converged, conv.reason, g)
-        if not result.converged:
+                             conv.converged, conv.reason, g, conv.settled, conv.body_motion_mm, min_det)
+        if conv.reason == "stalled":
+            warnings.warn(f"estimate stalled: it stopped changing {rms_hist[-1]:.2f} mm (RMS) from its targets after {conv.steps} "
+                          f"steps, more than {conv.stall_mm:.2f} mm; the targets may be unreachable"
+                          + (f" ({collapsed:.1%} of the particles collapsed to det F < 0.1)" if collapsed > 0.005 else ""),
+                          RuntimeWarning, stacklevel=2)
+        elif not result.converged:
             warnings.warn(f"estimate did not converge in {conv.steps} steps (relative residual {rel:.2e}, "
                           f"RMS {rms_hist[-1]:.3f} mm)", RuntimeWarning, stacklevel=2)
+        elif collapsed > 0.005:
+            warnings.warn(f"estimate converged but {collapsed:.1%} of the particles collapsed (det F < 0.1, smallest "
+                          f"{min_det:.3f}): the targets compress or fold the tissue beyond what the material model holds",
+                          RuntimeWarning, stacklevel=2)
         return result

@@ -13,3 +13,7 @@ class InputError(ValueError):
 
 class SimulationError(RuntimeError):
     """The simulation produced a non-finite value or a particle tried to leave the grid."""
+
+
+class InputWarning(UserWarning):
+    """Input that is accepted but looks wrong (an implausible organ volume or position: a wrong label preset?)."""

@@ -17,6 +17,7 @@ estimator uses the nominal table.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -82,13 +83,27 @@ class GroundTruth:
 
     def label_map(self, label_values: dict[str, int]) -> np.ndarray:
         """Deformed label map at the GT state on the planning grid, (z, y, x), with ``label_values``."""
-        g = self.model.geometry
-        out = np.zeros(g.size[::-1], dtype=np.int32)
-        # Stomach first, pancreas last, as the phantom's labels are drawn.
-        for organ in ("stomach", "left_kidney", "duodenum", "pancreas"):
-            if organ in self.model.organs:
-                out[voxelize(self.positions_mm, g, self.model.organ_slice(organ), self.model.sampling_step)] = label_values[organ]
+        return particle_label_map(self.model, self.positions_mm, label_values)
+
+
+def particle_label_map(model: ParticleModel, positions_mm: np.ndarray, label_values: dict[str, int]) -> np.ndarray:
+    """The label map (z, y, x) on the planning grid of particles at ``positions_mm`` (model order).
+
+    Each organ is voxelised on the grid the particles were laid on (:attr:`ParticleModel.particle_grid`),
+    stomach first and pancreas last as the phantom's labels are drawn, then resampled onto the planning
+    grid (nearest neighbour) when that grid is another (an isotropic lattice of a thick-slice scan).
+    """
+    g = model.particle_grid
+    out = np.zeros(g.size[::-1], dtype=np.int32)
+    for organ in ("stomach", "left_kidney", "duodenum", "pancreas"):
+        if organ in model.organs:
+            out[voxelize(positions_mm, g, model.organ_slice(organ), model.sampling_step)] = label_values[organ]
+    if model.lattice is None:
         return out
+    img = model.lattice.apply_to(sitk.GetImageFromArray(out))
+    ref = sitk.Image([int(v) for v in model.geometry.size], sitk.sitkInt32)
+    model.geometry.apply_to(ref)
+    return sitk.GetArrayFromImage(sitk.Resample(img, ref, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkInt32))
 
 
 #: Courant number of the ground-truth simulations. Driving EVERY particle at the estimator's CFL 0.5
@@ -121,13 +136,18 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
     if perturb:
         mats = perturb_materials(mats, seed)
         params["materials"] = {o: {"lam_pa": m.lam_pa, "mu_pa": m.mu_pa} for o, m in mats.items()}
-    gt_model = ParticleModel(model.positions_mm, model.organ_index, model.organs, model.voxel_ijk, model.volume_mm3, mats,
-                             model.geometry, model.sampling_step, dict(model.meta))
+    gt_model = replace(model, materials=mats, meta=dict(model.meta))
     cfg = gt_solver_config(solver_config, device)
+    if cfg.cell_size_mm is not None and cfg.cell_size_mm < model.max_gap_mm:
+        cfg = replace(cfg, cell_size_mm=model.max_gap_mm)  # the refinement stops at the particles' own gap
     # the truth is held to the paper's stricter stopping rule (TH_D = 4), not the estimator's default
     est = SliceDrivenEstimator(gt_model, driven=driven, solver_config=cfg, drive_config=DriveConfig(),
                                convergence=replace(ConvergenceConfig.paper(), max_steps=max_steps), extra_points_mm=targets_mm)
-    res = est.estimate(targets_mm)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = est.estimate(targets_mm)
+    for w in caught:  # say whose simulation it was
+        warnings.warn(f"ground truth: {w.message}", w.category, stacklevel=2)
     params["solver"] = est.mpm.summary()
     params["gt_steps"] = res.steps
     params["gt_converged"] = res.converged

@@ -16,7 +16,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import SimpleITK as sitk
 
-from .errors import InputError
+import warnings
+
+from .errors import InputError, InputWarning
 
 #: Organ names in the method's order and their one-letter codes (the paper's ``psdl``).
 ORGANS = ("pancreas", "stomach", "duodenum", "left_kidney")
@@ -152,11 +154,58 @@ def grid_differences(a: Geometry, b: Geometry, tol_mm: float = 1e-3) -> list[str
     return out
 
 
+def check_file_integrity(path: str) -> None:
+    """Refuse a truncated or corrupt file that ITK would read as data (it fills what is missing with zeros).
+
+    A gzip stream (``.gz``) must decompress to its end-of-stream marker with a matching CRC; a NIfTI-1
+    file must hold as many voxel bytes as its header announces.
+    """
+    import gzip
+    import struct
+    import zlib
+
+    name = path.lower()
+    if not (name.endswith(".gz") or name.endswith(".nii")):
+        return
+    if name.endswith(".gz"):
+        try:
+            with gzip.open(path, "rb") as f:
+                data = f.read()
+        except (EOFError, OSError, zlib.error) as exc:
+            raise InputError(f"{path} is truncated or corrupt (its gzip stream is broken: {exc}); "
+                             "copy it again from the source") from None
+    else:
+        with open(path, "rb") as f:
+            data = f.read()
+    if not (name.endswith(".nii") or name.endswith(".nii.gz")) or len(data) < 348:
+        return
+    for endian in ("<", ">"):
+        if struct.unpack(endian + "i", data[:4])[0] == 348:
+            break
+    else:
+        return  # not NIfTI-1 (NIfTI-2 or another format): ITK's own checks apply
+    dims = struct.unpack(endian + "8h", data[40:56])
+    bitpix = struct.unpack(endian + "h", data[72:74])[0]
+    vox_offset = int(struct.unpack(endian + "f", data[108:112])[0])
+    n = 1
+    for d in dims[1:1 + max(0, min(dims[0], 7))]:
+        n *= max(int(d), 1)
+    expected = vox_offset + n * bitpix // 8
+    if len(data) < expected:
+        raise InputError(f"{path} is truncated: its header announces {expected:,} bytes (voxels {dims[1:1 + dims[0]]}, "
+                         f"{bitpix} bits each) but it holds {len(data):,}; copy it again from the source")
+
+
 def read_volume(path: str | os.PathLike) -> sitk.Image:
-    """Read a 3D image: NIfTI, MHA/MHD, NRRD (any format SimpleITK reads) or a DICOM series folder."""
+    """Read a 3D image: NIfTI, MHA/MHD, NRRD (any format SimpleITK reads) or a DICOM series folder.
+
+    A truncated or corrupt NIfTI / gzip file is refused (:func:`check_file_integrity`).
+    """
     path = os.fspath(path)
     if not os.path.exists(path):
         raise InputError(f"file not found: {path}")
+    if os.path.isfile(path):
+        check_file_integrity(path)
     try:
         if os.path.isdir(path):
             reader = sitk.ImageSeriesReader()
@@ -243,13 +292,64 @@ def load_case(labels_path, image_path=None, preset: str | dict[str, int] = "amos
         if diff:
             raise InputError(f"image {image_path} and label map {labels_path} are on different grids: " + "; ".join(diff))
         image = sitk.GetArrayFromImage(img).astype(np.float32)
+        bad = ~np.isfinite(image)
+        if bad.any():
+            k, j, i = (int(v[0]) for v in np.nonzero(bad))
+            raise InputError(f"image {image_path} holds {int(bad.sum())} non-finite (NaN or Inf) voxels, the first at index "
+                             f"(i, j, k) = ({i}, {j}, {k}); fill or mask them before use")
     if "pancreas" not in label_map:
         raise InputError("the label mapping has no 'pancreas'; the method always models the pancreas")
     source = f"{labels_path}"
     case = Case(labels.astype(np.int32), geometry, label_map, image, name or os.path.basename(os.path.dirname(os.fspath(labels_path))) or "case", source)
     if not np.any(case.labels == label_map["pancreas"]):
         raise InputError(f"the label map {labels_path} holds no pancreas (label {label_map['pancreas']})")
+    for message in plausibility_warnings(case):
+        warnings.warn(f"{labels_path}: {message}", InputWarning, stacklevel=2)
     return case
+
+
+#: Largest plausible adult organ volume (mL) for the plausibility check of a label mapping.
+MAX_ORGAN_VOLUME_ML = {"pancreas": 250.0, "stomach": 4000.0, "duodenum": 300.0, "left_kidney": 500.0}
+#: Farthest an organ of the method may lie from the pancreas (mm): the duodenum wraps its head, the
+#: stomach lies in front of it, the left kidney behind its tail. Measured on the two samples: 3-13 mm;
+#: a wrong preset that names a lung lobe the duodenum puts it 47-68 mm away.
+MAX_DISTANCE_TO_PANCREAS_MM = 30.0
+
+
+def plausibility_warnings(case: "Case") -> list[str]:
+    """Why the organs of a case look mislabelled (empty list when they look right).
+
+    Checks each mapped organ's volume against :data:`MAX_ORGAN_VOLUME_ML` (and above 0.5 mL) and its
+    nearest distance to the pancreas against :data:`MAX_DISTANCE_TO_PANCREAS_MM`. A wrong ``--preset``
+    (e.g. ``totalseg_mr`` on a TotalSegmentator CT, whose label 14 is a lung lobe) shows up here.
+    """
+    g = case.geometry
+    out = []
+    if "pancreas" not in case.label_map or not np.any(case.labels == case.label_map["pancreas"]):
+        return out
+    pan = (case.labels == case.label_map["pancreas"]).astype(np.uint8)
+    dist = None
+    for organ, value in case.label_map.items():
+        mask = case.labels == value
+        if not mask.any():
+            continue
+        ml = float(mask.sum()) * g.voxel_volume_mm3 / 1000.0
+        if ml > MAX_ORGAN_VOLUME_ML.get(organ, np.inf):
+            out.append(f"the {organ} (label {value}) is {ml:.0f} mL, more than a {organ} holds "
+                       f"(<= {MAX_ORGAN_VOLUME_ML[organ]:.0f} mL): is the label preset right?")
+        elif ml < 0.5:
+            out.append(f"the {organ} (label {value}) is only {ml:.2f} mL: is the label preset right?")
+        if organ == "pancreas":
+            continue
+        if dist is None:
+            img = g.apply_to(sitk.GetImageFromArray(pan))
+            dist = sitk.GetArrayFromImage(sitk.SignedMaurerDistanceMap(img, insideIsPositive=False, squaredDistance=False,
+                                                                      useImageSpacing=True))
+        d = float(dist[mask].min())
+        if d > MAX_DISTANCE_TO_PANCREAS_MM:
+            out.append(f"the {organ} (label {value}) lies {d:.0f} mm from the pancreas at its nearest; it should touch or "
+                       f"nearly touch it (<= {MAX_DISTANCE_TO_PANCREAS_MM:.0f} mm): is the label preset right?")
+    return out
 
 
 def crop_to_organs(case: Case, organs, margin_mm: float = 15.0) -> tuple[Case, tuple[int, int, int]]:

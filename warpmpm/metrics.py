@@ -25,18 +25,38 @@ def dice(a: np.ndarray, b: np.ndarray) -> float:
     return 1.0 if total == 0 else 2.0 * int(np.logical_and(a, b).sum()) / total
 
 
+def covering_geometry(geometry: Geometry, *point_sets_mm: np.ndarray, margin_voxels: int = 2) -> Geometry:
+    """``geometry`` extended (same spacing and direction) so that every point of ``point_sets_mm`` lies inside it.
+
+    Returns ``geometry`` itself when they already do: a Dice on a grid that clips the truth (a GT that
+    moved out of the planning volume) would count the clipped part as missing from both.
+    """
+    pts = np.vstack([np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in point_sets_mm if len(p)])
+    if not len(pts):
+        return geometry
+    ijk = np.rint(geometry.world_to_index(pts)).astype(np.int64)
+    size = np.asarray(geometry.size)
+    lo = np.minimum(ijk.min(0) - margin_voxels, 0)
+    hi = np.maximum(ijk.max(0) + 1 + margin_voxels, size)
+    if np.all(lo == 0) and np.all(hi == size):
+        return geometry
+    return geometry.crop(tuple(int(v) for v in lo), tuple(int(v) for v in hi))
+
+
 def evaluate(estimate_mm: np.ndarray, truth_mm: np.ndarray, geometry: Geometry, exclude: np.ndarray | None = None,
              sampling_step: int = 1) -> dict:
     """Error (mean, p95, max; mm) and Dice of the voxelised regions of two particle sets.
 
     Both sets are voxelised on ``geometry`` in the same way (:func:`warpmpm.model.voxelize`).
     ``exclude`` (boolean per particle) drops particles from both metrics, as the paper did for the
-    particles on driving slices in its multi-slice protocol.
+    particles on driving slices in its multi-slice protocol. The grid is extended where either set
+    leaves it (:func:`covering_geometry`), so nothing is clipped from the Dice.
     """
     keep = np.ones(len(truth_mm), dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
     err = particle_errors_mm(estimate_mm[keep], truth_mm[keep])
-    d = dice(voxelize(estimate_mm[keep], geometry, sampling_step=sampling_step),
-             voxelize(truth_mm[keep], geometry, sampling_step=sampling_step))
+    grid = covering_geometry(geometry, estimate_mm[keep], truth_mm[keep])
+    d = dice(voxelize(estimate_mm[keep], grid, sampling_step=sampling_step),
+             voxelize(truth_mm[keep], grid, sampling_step=sampling_step))
     return {
         "error_mm": float(err.mean()) if err.size else float("nan"),
         "p95_mm": float(np.percentile(err, 95)) if err.size else float("nan"),

@@ -4,13 +4,25 @@ One particle per labelled voxel of each selected organ (the paper's choice), at 
 centre in world coordinates (mm). A sampling step ``s > 1`` keeps every s-th voxel in-plane
 (x and y; every slice is kept so that every axial slice still carries particles) and gives each
 particle ``s * s`` voxel volumes.
+
+Thick slices. Clinical scans are often 0.5-1.5 mm in-plane and 3-6 mm between slices. Particles on
+such a voxel grid form sheets far apart along the slice normal, and a grid cell derived from the
+particle volume is smaller than the gap between them: the sheets would not couple. When the gaps
+between neighbouring particles differ by more than :data:`MAX_LATTICE_ANISOTROPY` (or with
+``lattice="isotropic"``), the particles are laid on an isotropic lattice instead, of spacing
+``h = (s_x s_y s_z step^2)^(1/3)`` (as many particles as the voxel sampling would give), inside each
+organ's shape interpolated between slices (each organ's signed distance, linearly resampled, so a
+thick-slice staircase does not become the anatomy). Slice indices keep naming the planning grid's
+slices: a particle lies on slice ``k`` when it lies within that slice's thickness.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
+import SimpleITK as sitk
 
 from .errors import InputError
 from .images import ORGANS, Case, Geometry, organs_to_letters, parse_organs
@@ -63,8 +75,10 @@ class ParticleModel:
         voxel_ijk: (N, 3) voxel index (i, j, k) of each particle in the case grid.
         volume_mm3: (N,) particle volume in mm^3.
         materials: organ -> :class:`Material` used for this model.
-        geometry: the case grid the particles came from.
-        sampling_step: in-plane sampling step used.
+        geometry: the case grid the particles came from (slice indices name its slices).
+        sampling_step: in-plane sampling step used on ``geometry`` (1 on an isotropic lattice).
+        lattice: the isotropic grid whose voxel centres are the particles, when the scan's slices were
+            too thick for the voxel grid (module docstring); None: the particles sit on ``geometry``.
     """
 
     positions_mm: np.ndarray
@@ -76,6 +90,24 @@ class ParticleModel:
     geometry: Geometry
     sampling_step: int = 1
     meta: dict = field(default_factory=dict)
+    lattice: Geometry | None = None
+
+    @property
+    def particle_grid(self) -> Geometry:
+        """The grid whose voxel centres the particles are (``lattice``, else ``geometry``)."""
+        return self.lattice if self.lattice is not None else self.geometry
+
+    @property
+    def particle_spacing_mm(self) -> np.ndarray:
+        """Distance between neighbouring particles along each image axis (mm)."""
+        if self.lattice is not None:
+            return np.asarray(self.lattice.spacing_mm, dtype=np.float64)
+        return np.asarray(self.geometry.spacing_mm, dtype=np.float64) * np.array([self.sampling_step, self.sampling_step, 1])
+
+    @property
+    def max_gap_mm(self) -> float:
+        """The largest gap between neighbouring particles (mm): no grid cell may be smaller."""
+        return float(self.particle_spacing_mm.max())
 
     @property
     def n(self) -> int:
@@ -127,11 +159,9 @@ class ParticleModel:
         remap = np.full(len(self.organs), -1)
         for new, o in enumerate(organs):
             remap[self.organs.index(o)] = new
-        return ParticleModel(
-            self.positions_mm[keep].copy(), remap[self.organ_index[keep]].astype(np.int32), organs,
-            self.voxel_ijk[keep].copy(), self.volume_mm3[keep].copy(), dict(self.materials), self.geometry,
-            self.sampling_step, dict(self.meta),
-        )
+        return replace(self, positions_mm=self.positions_mm[keep].copy(), organ_index=remap[self.organ_index[keep]].astype(np.int32),
+                       organs=organs, voxel_ijk=self.voxel_ijk[keep].copy(), volume_mm3=self.volume_mm3[keep].copy(),
+                       materials={o: self.materials[o] for o in organs}, meta=dict(self.meta))
 
 
 def build_model(
@@ -140,6 +170,7 @@ def build_model(
     sampling_step: int = 1,
     materials: dict[str, Material] | None = None,
     density_kg_m3: float | None = None,
+    lattice: Literal["auto", "voxel", "isotropic"] = "auto",
 ) -> ParticleModel:
     """Build the particle model of ``organs`` from a case's label map.
 
@@ -149,6 +180,9 @@ def build_model(
         sampling_step: keep every s-th voxel along x and y (>= 1).
         materials: per-organ overrides of :data:`PAPER_MATERIALS`.
         density_kg_m3: one density for all organs (default: each material's, soft tissue 1040).
+        lattice: ``voxel``: one particle per (sampled) voxel; ``isotropic``: an isotropic lattice inside
+            the interpolated organ shapes (module docstring); ``auto`` (default): isotropic when the
+            gaps between neighbouring voxel particles differ by more than :data:`MAX_LATTICE_ANISOTROPY`.
     """
     if isinstance(organs, str):
         organs = parse_organs(organs)
@@ -167,11 +201,19 @@ def build_model(
         mats.update(materials)
     if density_kg_m3 is not None:
         mats = {k: Material(m.lam_pa, m.mu_pa, float(density_kg_m3)) for k, m in mats.items()}
+    if lattice not in ("auto", "voxel", "isotropic"):
+        raise InputError(f"unknown particle lattice {lattice!r}; use auto, voxel or isotropic")
+    gaps = np.asarray(case.geometry.spacing_mm) * np.array([sampling_step, sampling_step, 1])
+    if lattice == "isotropic" or (lattice == "auto" and gaps.max() / gaps.min() > MAX_LATTICE_ANISOTROPY):
+        return _build_on_isotropic_lattice(case, organs, sampling_step, {o: mats[o] for o in organs})
     pos, idx, ijk = [], [], []
     for n, organ in enumerate(organs):
         kk, jj, ii = np.nonzero(case.organ_mask(organ))
         if sampling_step > 1:
             keep = (ii % sampling_step == 0) & (jj % sampling_step == 0)
+            if not keep.any():
+                raise InputError(f"particle sampling step {sampling_step} leaves no particle of the {organ} "
+                                 f"({len(ii)} voxels spanning {np.ptp(ii) + 1} x {np.ptp(jj) + 1} in-plane); use a smaller step")
             kk, jj, ii = kk[keep], jj[keep], ii[keep]
         v = np.stack([ii, jj, kk], axis=1)
         ijk.append(v)
@@ -183,6 +225,66 @@ def build_model(
         np.concatenate(pos), np.concatenate(idx), organs, voxel_ijk, volume, {o: mats[o] for o in organs},
         case.geometry, int(sampling_step), {"case": case.name},
     )
+
+
+#: Largest ratio between the gaps of neighbouring particles along the image axes kept on the voxel
+#: grid: the phantom's 1.33 x 1.33 x 3 mm voxels (2.25) stay one particle per voxel; a 0.8 x 0.8 x 5 mm
+#: CT (6.3) or a 1.5 x 1.5 x 6 mm MR (4) goes onto an isotropic lattice.
+MAX_LATTICE_ANISOTROPY = 2.5
+
+
+def lattice_geometry(geometry: Geometry, spacing_mm: float) -> Geometry:
+    """An isotropic grid of ``spacing_mm`` over the same region and directions as ``geometry``."""
+    extent = np.asarray(geometry.size) * np.asarray(geometry.spacing_mm)  # voxel faces to voxel faces
+    size = np.maximum(1, np.round(extent / spacing_mm)).astype(int)
+    # first lattice centre half a lattice cell inside the first voxel's outer face
+    corner = geometry.index_to_world(np.full((1, 3), -0.5))[0]
+    origin = corner + geometry.direction_matrix @ np.full(3, 0.5 * spacing_mm)
+    return Geometry(tuple(int(v) for v in size), (float(spacing_mm),) * 3, tuple(float(v) for v in origin), geometry.direction)
+
+
+def shape_based_labels(case: Case, organs, target: Geometry) -> np.ndarray:
+    """Organ index map (z, y, x) on ``target`` (-1: none) from each organ's signed distance, resampled linearly.
+
+    Interpolating the distance to each organ's surface between thick slices gives a smooth shape where
+    nearest-neighbour resampling would give a staircase. A voxel claimed by two organs goes to the one
+    it lies deeper inside.
+    """
+    ref = sitk.Image([int(v) for v in target.size], sitk.sitkFloat32)
+    target.apply_to(ref)
+    best = np.full(target.size[::-1], np.inf, dtype=np.float32)
+    out = np.full(target.size[::-1], -1, dtype=np.int32)
+    for n, organ in enumerate(organs):
+        mask = case.geometry.apply_to(sitk.GetImageFromArray(case.organ_mask(organ).astype(np.uint8)))
+        # signed distance to the organ's boundary (negative inside), in mm; the boundary lies half a
+        # voxel outside the outermost organ voxel centres, where the interpolated distance crosses zero
+        sdf = sitk.SignedMaurerDistanceMap(mask, insideIsPositive=False, squaredDistance=False, useImageSpacing=True)
+        d = sitk.GetArrayFromImage(sitk.Resample(sdf, ref, sitk.Transform(), sitk.sitkLinear, 1e9, sitk.sitkFloat32))
+        take = (d < best) & (d < 0)
+        out[take] = n
+        best = np.minimum(best, d)
+    return out
+
+
+def _build_on_isotropic_lattice(case: Case, organs, sampling_step: int, mats: dict[str, Material]) -> ParticleModel:
+    h = float((case.geometry.voxel_volume_mm3 * sampling_step**2) ** (1.0 / 3.0))
+    lat = lattice_geometry(case.geometry, h)
+    labels = shape_based_labels(case, organs, lat)
+    pos, idx, ijk = [], [], []
+    for n, organ in enumerate(organs):
+        kk, jj, ii = np.nonzero(labels == n)
+        if len(ii) == 0:
+            raise InputError(f"the {organ} is thinner than the {h:.2f} mm particle lattice of this scan; "
+                             "use a smaller --particle-step or lattice='voxel'")
+        p = lat.index_to_world(np.stack([ii, jj, kk], axis=1))
+        pos.append(p)
+        idx.append(np.full(len(p), n, dtype=np.int32))
+    positions = np.concatenate(pos)
+    # the planning voxel holding each particle: slice k of the scan holds the particles within its thickness
+    voxel_ijk = np.rint(case.geometry.world_to_index(positions)).astype(np.int64)
+    voxel_ijk = np.clip(voxel_ijk, 0, np.asarray(case.geometry.size) - 1).astype(np.int32)
+    return ParticleModel(positions, np.concatenate(idx), tuple(organs), voxel_ijk, np.full(len(positions), h**3), mats,
+                         case.geometry, 1, {"case": case.name, "lattice_mm": h}, lattice=lat)
 
 
 def voxelize(positions_mm: np.ndarray, geometry: Geometry, mask: np.ndarray | None = None, sampling_step: int = 1) -> np.ndarray:

@@ -83,7 +83,10 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
     """
     for name, im in (("stored", stored), ("captured", captured)):
         arr = sitk.GetArrayViewFromImage(im)
-        if not np.all(np.isfinite(arr)) or float(arr.max() - arr.min()) <= 1e-6:
+        finite = np.isfinite(arr)
+        if not finite.all():
+            raise InputError(f"the {name} slice holds {int((~finite).sum())} non-finite (NaN or Inf) pixels; nothing can be registered")
+        if float(arr.max() - arr.min()) <= 1e-6:
             raise InputError(f"the {name} slice is blank or constant; nothing to register")
     fixed = sitk.Cast(captured, sitk.sitkFloat32)
     moving = sitk.Cast(stored, sitk.sitkFloat32)

@@ -38,7 +38,8 @@ class SolverConfig:
 
     Attributes:
         particles_per_cell: particles per grid cell used to derive the cell size from the particle
-            volume, ``dx = (ppc * V_p)^(1/3)``. The default 4 keeps more than one quadrature point per
+            volume, ``dx = max((ppc * V_p)^(1/3), largest gap between neighbouring particles)`` (a thick-slice
+            scan must not fall apart into sheets). The default 4 keeps more than one quadrature point per
             cell (1 ppc gives the ringing 'null modes' of MPM) while keeping the cell near the slice
             thickness, so organs closer than about one cell touch through the shared grid.
         cell_size_mm: explicit grid cell size (overrides ``particles_per_cell``).
@@ -74,6 +75,75 @@ class SolverConfig:
     device: str | None = None
     check_every: int | None = None
 
+    def __post_init__(self):
+        def finite(name, lo=0.0, strict=True, optional=False):
+            v = getattr(self, name)
+            if v is None and optional:
+                return
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v > lo if strict else v >= lo)
+            if not ok:
+                raise InputError(f"SolverConfig.{name} must be a finite number {'>' if strict else '>='} {lo:g}, got {v!r}")
+
+        finite("particles_per_cell")
+        finite("cell_size_mm", optional=True)
+        finite("margin_mm", strict=False)
+        finite("cfl_limit")
+        finite("cfl")
+        finite("dt_s", optional=True)
+        finite("damping_per_s", strict=False, optional=True)
+        finite("damping_factor", strict=False)
+        if self.cfl_limit > 1.0:
+            raise InputError(f"SolverConfig.cfl_limit must be at most 1 (explicit MPM is unstable above), got {self.cfl_limit}")
+        if self.cfl > self.cfl_limit:
+            raise InputError(f"SolverConfig.cfl {self.cfl} is above the stable limit cfl_limit {self.cfl_limit}: the time step "
+                             f"dt = cfl dx / c would make the simulation blow up; use cfl <= {self.cfl_limit}")
+        if not isinstance(self.wall_cells, int) or self.wall_cells < 1:
+            raise InputError(f"SolverConfig.wall_cells must be an integer >= 1, got {self.wall_cells!r}")
+        if self.check_every is not None and (not isinstance(self.check_every, int) or self.check_every < 1):
+            raise InputError(f"SolverConfig.check_every must be an integer >= 1, got {self.check_every!r}")
+
+
+#: Bytes per particle of a step (two states of x, v, C, F; stress; mass, volume, Lame; force) and per grid node.
+BYTES_PER_PARTICLE = 256
+BYTES_PER_NODE = 28
+
+
+def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm: np.ndarray | None = None):
+    """``(dx_mm, origin_mm, grid_shape)`` of the background grid: the cell from the particle volume
+    (never smaller than the largest gap between neighbouring particles), the box of the particles and
+    ``extra_points_mm`` plus ``margin_mm`` and the wall layer."""
+    cfg = config
+    if particles.n == 0:
+        raise InputError("the particle model is empty")
+    gap = particles.max_gap_mm
+    if cfg.cell_size_mm:
+        if cfg.cell_size_mm < gap * (1 - 1e-9):
+            raise InputError(f"grid cell {cfg.cell_size_mm} mm is smaller than the {gap:.2f} mm gap between neighbouring "
+                             "particles: the particle layers would not share grid nodes and would move apart; "
+                             f"use cell_size_mm >= {gap:.2f}")
+        dx = float(cfg.cell_size_mm)
+    else:
+        # never a cell smaller than the largest gap between neighbouring particles (thick slices)
+        dx = max(float((cfg.particles_per_cell * np.median(particles.volume_mm3)) ** (1 / 3)), gap)
+    pts = particles.positions_mm
+    if extra_points_mm is not None and len(extra_points_mm):
+        extra = np.asarray(extra_points_mm, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(extra)):
+            bad = int(np.nonzero(~np.all(np.isfinite(extra), axis=1))[0][0])
+            raise InputError(f"extra_points_mm holds a non-finite value (point {bad}); the grid must cover finite positions")
+        pts = np.vstack([pts, extra])
+    lo = pts.min(axis=0) - cfg.margin_mm
+    hi = pts.max(axis=0) + cfg.margin_mm
+    pad = (cfg.wall_cells + 2) * dx
+    origin = lo - pad
+    shape = tuple(int(v) for v in np.ceil((hi + pad - origin) / dx) + 1)
+    return dx, origin, shape
+
+
+def memory_estimate_bytes(n_particles: int, grid_shape) -> int:
+    """Memory of one simulation (particles and grid), from :data:`BYTES_PER_PARTICLE` and :data:`BYTES_PER_NODE`."""
+    return int(n_particles * BYTES_PER_PARTICLE + int(np.prod(grid_shape)) * BYTES_PER_NODE)
+
 
 def default_device() -> str:
     wp.init()
@@ -94,23 +164,8 @@ class MPMModel:
         self.config = cfg
         self.particles = particles
         self.device = cfg.device or default_device()
-        if cfg.particles_per_cell <= 0:
-            raise InputError(f"particles_per_cell must be > 0, got {cfg.particles_per_cell}")
-        n = particles.n
-        if n == 0:
-            raise InputError("the particle model is empty")
         vol_mm3 = particles.volume_mm3.astype(np.float64)
-        self.dx_mm = float(cfg.cell_size_mm) if cfg.cell_size_mm else float((cfg.particles_per_cell * np.median(vol_mm3)) ** (1 / 3))
-        if not self.dx_mm > 0:
-            raise InputError(f"grid cell size must be > 0 mm, got {self.dx_mm}")
-        pts = particles.positions_mm
-        if extra_points_mm is not None and len(extra_points_mm):
-            pts = np.vstack([pts, np.asarray(extra_points_mm, dtype=np.float64).reshape(-1, 3)])
-        lo = pts.min(axis=0) - cfg.margin_mm
-        hi = pts.max(axis=0) + cfg.margin_mm
-        pad = (cfg.wall_cells + 2) * self.dx_mm
-        self.origin_mm = lo - pad
-        self.grid_shape = tuple(int(v) for v in np.ceil((hi + pad - self.origin_mm) / self.dx_mm) + 1)
+        self.dx_mm, self.origin_mm, self.grid_shape = grid_layout(particles, cfg, extra_points_mm)
 
         lam = particles.per_particle("lam_pa")
         mu = particles.per_particle("mu_pa")

@@ -87,5 +87,5 @@ def prepare_case(cfg: CaseConfig) -> PreparedCase:
     present = tuple(o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o]))
     input_centre = case.geometry.center_mm()
     cropped, offset = crop_to_organs(case, present, margin_mm=15.0)
-    full = build_model(cropped, present, sampling_step=cfg.particle_step)
+    full = build_model(cropped, present, sampling_step=cfg.particle_step, lattice=cfg.lattice)
     return PreparedCase(cropped, offset, input_centre, full, case.geometry.size)

@@ -20,6 +20,7 @@ from ..solver import SolverConfig
 
 Protocol = Literal["paper", "contact"]
 TargetKind = Literal["affine", "gt", "registration"]
+Lattice = Literal["auto", "voxel", "isotropic"]
 Baseline = Literal["initial", "propagate", "volume_registration"]
 
 PROTOCOLS: tuple[str, ...] = get_args(Protocol)
@@ -67,12 +68,19 @@ class CaseConfig:
     """Warp device: ``cpu``, ``cuda`` or ``cuda:N``; None: CUDA when available."""
     particle_step: int = 1
     """In-plane particle sampling step (1: one particle per voxel, the paper's choice)."""
+    lattice: Lattice = "auto"
+    """Where the particles sit: ``voxel`` (one per sampled voxel), ``isotropic`` (a lattice inside the
+    interpolated organ shapes, for thick-slice scans), ``auto`` (isotropic when the voxel gaps differ by
+    more than 2.5x; see :mod:`warpmpm.model`)."""
     perturb: bool = True
     """Simulate the GT with materials perturbed by up to +-30 % per organ (no inverse crime)."""
     literal: bool = False
     """Read the paper's r, g literally as r/2pi radians instead of degrees."""
     max_steps: int = 6000
     """Steps per estimate before it is reported not converged."""
+    wait_settled: bool = False
+    """Run each estimate on until the whole model has settled, not only the driven slice
+    (:class:`~warpmpm.driving.ConvergenceConfig`)."""
     baselines: tuple[Baseline, ...] = ("initial", "propagate", "volume_registration")
     """Baselines scored beside the estimate."""
     exclude_driven: bool | None = None
@@ -115,6 +123,8 @@ class CaseConfig:
             raise InputError(f"unknown device {self.device!r}; use cpu or cuda")
         if not _is_int(self.particle_step) or self.particle_step < 1:
             raise InputError(f"particle step must be an integer >= 1, got {self.particle_step!r}")
+        if self.lattice not in ("auto", "voxel", "isotropic"):
+            raise InputError(f"unknown particle lattice {self.lattice!r}; use auto, voxel or isotropic")
         if not _is_int(self.max_steps) or self.max_steps < 1:
             raise InputError(f"max steps must be an integer >= 1, got {self.max_steps!r}")
         bad = [b for b in self.baselines if b not in BASELINES]

@@ -65,7 +65,7 @@ def multi_direction_task(case: dict, deformation: int, selector_path: str, plane
             idx = driven_indices(model, prep.resolve_slices(model, text))
             excl = np.zeros(model.n, dtype=bool)
             excl[idx] = True
-            vr = evaluate(vr_pos[pancreas], gt_pos[pancreas], prep.case.geometry, excl[pancreas], model.sampling_step)
+            vr = evaluate(vr_pos[pancreas], gt_pos[pancreas], model.particle_grid, excl[pancreas], model.sampling_step)
             outs.append({"case": name, "protocol": cfg0.protocol, "deformation": int(deformation), "condition": cond,
                          "slices": ",".join(out.slices), "n_driven": out.n_driven, "n_excluded_pancreas": int(np.sum(pancreas[idx])),
                          "error_mm": r["estimate"].error_mm, "dice": r["estimate"].dice,

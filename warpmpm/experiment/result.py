@@ -18,6 +18,8 @@ class Scores:
     Attributes:
         error_mm: mean particle distance to the GT (mm); p95_mm, max_mm: its 95th percentile and maximum.
         dice: Dice of the voxelised pancreas regions. n: particles scored.
+        error_offslice_mm: mean error of the pancreas particles that no driving slice holds (what the
+            estimate inferred, not what it was told), whatever ``excluded_driven`` says.
         info: method-specific values (a baseline's time, whether it fell back to the identity...).
     """
 
@@ -26,11 +28,13 @@ class Scores:
     max_mm: float
     dice: float
     n: int
+    error_offslice_mm: float = float("nan")
     info: dict = field(default_factory=dict)
 
     @classmethod
-    def of(cls, metrics: dict, **info) -> "Scores":
-        return cls(**{k: metrics[k] for k in ("error_mm", "p95_mm", "max_mm", "dice", "n")}, info=dict(info))
+    def of(cls, metrics: dict, error_offslice_mm: float = float("nan"), **info) -> "Scores":
+        return cls(**{k: metrics[k] for k in ("error_mm", "p95_mm", "max_mm", "dice", "n")}, error_offslice_mm=error_offslice_mm,
+                   info=dict(info))
 
     def to_json(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "info"}
@@ -42,8 +46,10 @@ class EstimateScores(Scores):
     """The estimate's scores and how it ran.
 
     Attributes (beside :class:`Scores`'): steps run; wall_s of the drive loop; converged and reason
-    (the stopping rule that ended it); rms_residual_mm and rel_residual of the driven particles at the
-    end; ms_per_step.
+    (the stopping rule that ended it: threshold, stagnation, stalled, max_steps); rms_residual_mm and
+    rel_residual of the driven particles at the end; ms_per_step; settled and body_motion_mm (whether
+    the whole model had stopped moving: the 99th-percentile particle displacement over the last 100
+    steps); min_det_f (the smallest particle volume ratio: near 0, an element collapsed).
     """
 
     steps: int
@@ -53,6 +59,9 @@ class EstimateScores(Scores):
     rms_residual_mm: float
     rel_residual: float
     ms_per_step: float
+    settled: bool = False
+    body_motion_mm: float = float("nan")
+    min_det_f: float = float("nan")
 
 
 @dataclass(kw_only=True)

@@ -17,7 +17,7 @@ MULTI_NAMES = {"a": "axial only", "ac": "axial + coronal", "as": "axial + sagitt
 
 def format_table(out: RunResult) -> str:
     """The run's table: each baseline and the estimate with error, p95, Dice (and steps, time)."""
-    rows = ["| method | error mm | p95 mm | Dice | steps | wall s |", "|---|---|---|---|---|---|"]
+    rows = ["| method | error mm | off-slice error mm | p95 mm | Dice | steps | wall s |", "|---|---|---|---|---|---|---|"]
     for name in ("initial", "propagate", "volume_registration", "estimate"):
         r = out.results.get(name)
         if r is None:
@@ -25,13 +25,20 @@ def format_table(out: RunResult) -> str:
         j = r.to_json()
         steps = str(j.get("steps", ""))
         wall = f"{j['wall_s']:.2f}" if "wall_s" in j else ""
-        rows.append(f"| {name} | {r.error_mm:.2f} | {r.p95_mm:.2f} | {r.dice:.3f} | {steps} | {wall} |")
+        label = name
+        if j.get("fallback_to_identity"):
+            label += " (FAILED: fell back to no motion)"
+        rows.append(f"| {label} | {r.error_mm:.2f} | {r.error_offslice_mm:.2f} | {r.p95_mm:.2f} | {r.dice:.3f} | {steps} | {wall} |")
     head = (f"case {out.case}, organs {out.organs}, slices {','.join(out.slices)}, protocol {out.protocol}"
             f" (deformation {out.deformation}), targets {out.targets}, device {out.device}, "
             f"particles {sum(out.n_particles.values())} ({out.n_particles}), driven {out.n_driven}")
     est = out.estimate
-    tail = (f"estimate: {'converged' if est.converged else 'NOT converged'} ({est.reason}) in {est.steps} steps, "
-            f"{est.ms_per_step:.2f} ms/step, RMS residual {est.rms_residual_mm:.3f} mm")
+    state = "converged" if est.converged else ("STALLED" if est.reason == "stalled" else "NOT converged")
+    tail = (f"estimate: {state} ({est.reason}) in {est.steps} steps, {est.ms_per_step:.2f} ms/step, "
+            f"RMS residual {est.rms_residual_mm:.3f} mm; "
+            + ("the whole model had settled" if est.settled else
+               f"the model was still moving ({est.body_motion_mm:.2f} mm per 100 steps at the 99th percentile: "
+               "not yet an equilibrium; --wait-settled runs on until it is)"))
     if out.registration is not None:
         r = out.registration
         tail += f"\nregistration: in-plane error of the slice's pancreas particles {r['error_mm']:.2f} mm, {r['wall_s'] * 1e3:.1f} ms per slice"

@@ -6,7 +6,23 @@ reported (one stderr line) and returned in the failure list without stopping the
 
 from __future__ import annotations
 
+import os
 import sys
+import threading
+import time
+
+
+def _exit_with_parent(parent_pid: int) -> None:
+    """Worker initializer: end this worker when the sweep that started it is gone (``kill -9`` of the
+    parent leaves no orphan workers simulating for nobody)."""
+
+    def watch():
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(1)
+            time.sleep(1.0)
+
+    threading.Thread(target=watch, daemon=True).start()
 
 
 def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: str | None = None) -> list[tuple]:
@@ -37,7 +53,8 @@ def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: 
         import concurrent.futures as cf
         import multiprocessing as mp
 
-        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+        with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_exit_with_parent,
+                                    initargs=(os.getpid(),)) as ex:
             futures = {ex.submit(fn, *a): a for a in args}
             try:
                 for fut in cf.as_completed(futures):
