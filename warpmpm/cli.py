@@ -86,6 +86,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
     p.add_argument("--rrd-every", type=int, default=20, help="log particle positions every this many steps (scalars every step)")
     p.add_argument("--json", help="write the results as JSON to this file")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr (the model's size, the GT, the estimate)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -211,7 +212,12 @@ def cmd_run(a) -> int:
         from .viewer.recording import RerunRecorder
 
         recorder = RerunRecorder(a.rrd, every=cfg.rrd_every)
-    out = run_case(cfg, recorder)
+    from .experiment.run import Progress
+
+    def tell(text, end="\n"):
+        print(text, end=end, file=sys.stderr, flush=True)
+
+    out = run_case(cfg, recorder, Progress(None if a.quiet else tell, live=sys.stderr.isatty()))
     out.selection = selection
     print(format_table(out))
     if selection is not None:

@@ -120,17 +120,20 @@ def gt_solver_config(base: SolverConfig | None = None, device: str | None = None
     (at least 1) and, for an explicit ``cell_size_mm``, a cell ``0.5^(1/3)`` as wide (the same
     refinement); a Courant number of at most :data:`GT_CFL`; ``dt_s`` cleared, since a time step fixed
     for the estimator's grid is above the finer grid's limit (the GT derives its own stable step);
-    ``device`` defaults to ``device``.
+    ``device`` defaults to ``device``; and the cell may be finer than the particles' largest gap when
+    every particle is driven (the paper protocol; :func:`simulate_gt` turns it back on otherwise).
     """
     b = base or SolverConfig(device=device)
     return replace(b, particles_per_cell=max(1.0, b.particles_per_cell * 0.5),
                    cell_size_mm=None if b.cell_size_mm is None else b.cell_size_mm * 0.5 ** (1.0 / 3.0),
-                   cfl=min(b.cfl, GT_CFL), dt_s=None, device=b.device or device)
+                   cfl=min(b.cfl, GT_CFL), dt_s=None, device=b.device or device, cell_at_least_gap=False)
 
 
 def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray, *, perturb: bool, seed: int,
-                solver_config: SolverConfig | None, device: str | None, max_steps: int = 4000):
-    """Simulate a GT: ``targets_mm`` of the ``driven`` particles, perturbed materials; returns ``(params, result)``."""
+                solver_config: SolverConfig | None, device: str | None, max_steps: int = 4000, callback=None):
+    """Simulate a GT: ``targets_mm`` of the ``driven`` particles, perturbed materials; returns ``(params, result)``.
+
+    ``callback(estimator, step, rel_residual, rms_mm)`` is called every step (progress)."""
     params: dict = {"perturbed": bool(perturb), "material_seed": int(seed)}
     mats = dict(model.materials)
     if perturb:
@@ -138,16 +141,19 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
         params["materials"] = {o: {"lam_pa": m.lam_pa, "mu_pa": m.mu_pa} for o, m in mats.items()}
     gt_model = replace(model, materials=mats, meta=dict(model.meta))
     cfg = gt_solver_config(solver_config, device)
-    if cfg.cell_size_mm is not None and cfg.cell_size_mm < model.max_gap_mm:
-        cfg = replace(cfg, cell_size_mm=model.max_gap_mm)  # the refinement stops at the particles' own gap
+    if len(driven) < model.n:  # undriven particles must stay coupled through the grid (thick slices)
+        cfg = replace(cfg, cell_at_least_gap=True)
+        if cfg.cell_size_mm is not None and cfg.cell_size_mm < model.max_gap_mm:
+            cfg = replace(cfg, cell_size_mm=model.max_gap_mm)  # the refinement stops at the particles' own gap
     # the truth is held to the paper's stricter stopping rule (TH_D = 4), not the estimator's default
     est = SliceDrivenEstimator(gt_model, driven=driven, solver_config=cfg, drive_config=DriveConfig(),
-                               convergence=replace(ConvergenceConfig.paper(), max_steps=max_steps), extra_points_mm=targets_mm)
+                               convergence=replace(ConvergenceConfig.paper(), max_steps=max_steps), extra_points_mm=targets_mm,
+                               callback=callback)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = est.estimate(targets_mm)
     for w in caught:  # say whose simulation it was
-        warnings.warn(f"ground truth: {w.message}", w.category, stacklevel=2)
+        warnings.warn(f"ground truth: {str(w.message).removeprefix('estimate ')}", w.category, stacklevel=2)
     params["solver"] = est.mpm.summary()
     params["gt_steps"] = res.steps
     params["gt_converged"] = res.converged
@@ -157,7 +163,7 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
 
 def paper_ground_truth(model: ParticleModel, deformation: int, *, literal: bool = False, perturb: bool = True, seed: int = 0,
                        centre_mm: np.ndarray | None = None, solver_config: SolverConfig | None = None,
-                       device: str | None = None, simulate: bool = True) -> GroundTruth:
+                       device: str | None = None, simulate: bool = True, callback=None) -> GroundTruth:
     """The paper protocol on ``model``: every particle driven to its axial-slice affine target.
 
     ``simulate=False`` returns the targets themselves (the purely geometric GT, for debugging).
@@ -171,7 +177,7 @@ def paper_ground_truth(model: ParticleModel, deformation: int, *, literal: bool 
     if not simulate:
         return GroundTruth(model, targets, "paper", params)
     sim, res = simulate_gt(model, np.arange(model.n), targets, perturb=perturb, seed=seed + 1000 * deformation,
-                           solver_config=solver_config, device=device)
+                           solver_config=solver_config, device=device, callback=callback)
     return GroundTruth(model, res.positions_mm, "paper", params | sim, res.steps, res.wall_s, res.converged)
 
 
@@ -216,11 +222,12 @@ def contact_targets(model: ParticleModel, seed: int, neighbour: str | None = Non
 
 def contact_ground_truth(model: ParticleModel, *, seed: int = 0, perturb: bool = True, neighbour: str | None = None,
                          push_mm: float | None = None, solver_config: SolverConfig | None = None,
-                         device: str | None = None) -> GroundTruth:
+                         device: str | None = None, callback=None) -> GroundTruth:
     """The contact protocol on ``model``; parameters and seed recorded in ``params``."""
     idx, targets, params = contact_targets(model, seed, neighbour, push_mm)
     params["seed"] = seed
-    sim, res = simulate_gt(model, idx, targets, perturb=perturb, seed=seed + 77, solver_config=solver_config, device=device)
+    sim, res = simulate_gt(model, idx, targets, perturb=perturb, seed=seed + 77, solver_config=solver_config, device=device,
+                           callback=callback)
     return GroundTruth(model, res.positions_mm, "contact", params | sim, res.steps, res.wall_s, res.converged)
 
 

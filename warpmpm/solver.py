@@ -60,6 +60,9 @@ class SolverConfig:
         device: Warp device (``"cpu"``, ``"cuda"``, ``"cuda:0"``); None: CUDA when available.
         check_every: read the NaN / out-of-grid flag back every this many steps; None: every step on
             the CPU (free), every 50 on CUDA (a read-back synchronises the GPU with the host).
+        cell_at_least_gap: never make a cell smaller than the largest gap between neighbouring particles
+            (default). Only a simulation that drives every particle (the ground truth) may turn it off:
+            its layers are held by their targets, not by each other.
     """
 
     particles_per_cell: float = 4.0
@@ -74,6 +77,7 @@ class SolverConfig:
     damping_factor: float = 4.0
     device: str | None = None
     check_every: int | None = None
+    cell_at_least_gap: bool = True
 
     def __post_init__(self):
         def finite(name, lo=0.0, strict=True, optional=False):
@@ -115,7 +119,7 @@ def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm:
     cfg = config
     if particles.n == 0:
         raise InputError("the particle model is empty")
-    gap = particles.max_gap_mm
+    gap = particles.max_gap_mm if cfg.cell_at_least_gap else 0.0
     if cfg.cell_size_mm:
         if cfg.cell_size_mm < gap * (1 - 1e-9):
             raise InputError(f"grid cell {cfg.cell_size_mm} mm is smaller than the {gap:.2f} mm gap between neighbouring "

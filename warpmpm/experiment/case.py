@@ -38,6 +38,12 @@ class PreparedCase:
     input_size: tuple[int, int, int] = (0, 0, 0)
 
     @property
+    def input_geometry(self):
+        """The grid of the whole input volume (before the crop)."""
+        lo = tuple(-int(o) for o in self.offset)
+        return self.case.geometry.crop(lo, tuple(a + int(n) for a, n in zip(lo, self.input_size)))
+
+    @property
     def centre_mm(self) -> np.ndarray:
         """The centre of the in-plane motions (the input volume's centre)."""
         return self.input_centre_mm

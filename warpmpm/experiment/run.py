@@ -24,9 +24,11 @@ from .targets import run_targets
 from .truth import gt_for_model, make_ground_truth
 
 
-def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder: Recorder | None = None) -> RunResult:
+def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder: Recorder | None = None,
+                 progress: Progress | None = None) -> RunResult:
     """The estimate and baselines of one (organs, slices, targets) on a prepared case and its GT."""
     recorder = recorder or NullRecorder()
+    progress = progress or Progress(None)
     model = prep.model(cfg.organs)
     gt_pos = gt_for_model(gt, model)
     slices = prep.resolve_slices(model, cfg.slices)
@@ -63,10 +65,17 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         results["volume_registration"] = score(pos, **info)
     recorder.begin(model, gt_pos)
     recorder.log_slices(slices, idx, targets, prep.case, prep.centre_mm)
+    def on_step(estimator, step, rel, rms):
+        recorder.on_step(estimator, step, rel, rms)
+        progress.step("estimate", step, rms)
+
     est = SliceDrivenEstimator(model, slices, driven=idx, solver_config=replace(cfg.solver, device=cfg.device),
-                               convergence=ConvergenceConfig(max_steps=cfg.max_steps, wait_settled=cfg.wait_settled), extra_points_mm=np.vstack([targets, gt_pos]),
-                               callback=recorder.on_step)
+                               convergence=ConvergenceConfig(max_steps=cfg.max_steps, wait_settled=cfg.wait_settled),
+                               extra_points_mm=np.vstack([targets, gt_pos]), callback=on_step)
+    progress.say(f"estimate: {len(idx):,} particles driven on {', '.join(str(prep.to_input(s)) for s in slices)}, "
+                 f"cell {est.mpm.dx_mm:.2f} mm, grid {'x'.join(map(str, est.mpm.grid_shape))}")
     res = est.estimate(targets)
+    progress.done(f"estimate: {res.steps} steps in {res.wall_s:.1f} s ({res.reason})")
     m = evaluate(res.positions_mm[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step)
     results["estimate"] = EstimateScores(
         **{k: m[k] for k in ("error_mm", "p95_mm", "max_mm", "dice", "n")}, error_offslice_mm=offslice_error(res.positions_mm),
@@ -93,13 +102,49 @@ def check_device(device: str | None) -> None:
             raise InputError("--device cuda asked for, but no CUDA device is available")
 
 
-def run_case(cfg: CaseConfig, recorder: Recorder | None = None) -> RunResult:
+class Progress:
+    """Where a run says how far it has got: stage lines to ``write`` (None: silent), and a live step line
+    when ``live`` (a terminal)."""
+
+    def __init__(self, write, live: bool = False, every: int = 50):
+        self.write, self.live, self.every = write, live, every
+
+    def say(self, text: str) -> None:
+        if self.write is not None:
+            self.write(text)
+
+    def step(self, what: str, step: int, rms_mm: float) -> None:
+        if self.write is not None and self.live and step % self.every == 0:
+            self.write(f"\r{what}: step {step}, driven RMS residual {rms_mm:.3f} mm", end="")
+
+    def done(self, text: str) -> None:
+        if self.write is not None:
+            self.say(("\r" if self.live else "") + text)
+
+
+def size_report(prep: PreparedCase, cfg: CaseConfig) -> str:
+    """The model's size, its grid and the memory the largest simulation of the run needs (the GT's finer grid)."""
+    from ..groundtruth import gt_solver_config
+    from ..solver import grid_layout, memory_estimate_bytes
+
+    m = prep.full_model
+    dx, _, shape = grid_layout(m, replace(cfg.solver, device=cfg.device))
+    gdx, _, gshape = grid_layout(m, gt_solver_config(cfg.solver, cfg.device))
+    mem = max(memory_estimate_bytes(m.n, shape), memory_estimate_bytes(m.n, gshape))
+    lattice = f", isotropic {m.lattice.spacing_mm[0]:.2f} mm lattice (thick slices)" if m.lattice is not None else ""
+    return (f"model: {m.n:,} particles ({', '.join(f'{o} {c:,}' for o, c in m.counts().items())}){lattice}; estimate grid "
+            f"{'x'.join(map(str, shape))} of {dx:.2f} mm, ground truth {'x'.join(map(str, gshape))} of {gdx:.2f} mm; "
+            f"~{mem / 1e6:.0f} MB")
+
+
+def run_case(cfg: CaseConfig, recorder: Recorder | None = None, progress: Progress | None = None) -> RunResult:
     """Run one whole case: prepare it, check the slices, simulate the GT, then :func:`run_prepared`.
 
     Every input is checked before the (costly) GT simulation. The recorder, when given, is closed here
     (``ok=False`` when the run fails or is interrupted, so a file recorder leaves nothing behind).
     """
     recorder = recorder or NullRecorder()
+    progress = progress or Progress(None)
     ok = False
     try:
         if cfg.is_auto:
@@ -111,8 +156,11 @@ def run_case(cfg: CaseConfig, recorder: Recorder | None = None) -> RunResult:
             # every slice must be inside the volume and hold particles: fail before the (costly) GT
             model = prep.model(cfg.organs)
             driven_indices(model, prep.resolve_slices(model, cfg.slices))
-        gt = make_ground_truth(prep, cfg)
-        out = run_prepared(prep, gt, cfg, recorder)
+        progress.say(size_report(prep, cfg))
+        progress.say(f"ground truth ({cfg.protocol}, deformation {cfg.deformation}): simulating...")
+        gt = make_ground_truth(prep, cfg, callback=lambda est, step, rel, rms: progress.step("ground truth", step, rms))
+        progress.done(f"ground truth: {gt.steps} steps in {gt.wall_s:.1f} s")
+        out = run_prepared(prep, gt, cfg, recorder, progress)
         out.total_wall_s = time.perf_counter() - t0
         ok = True
         return out
