@@ -70,7 +70,8 @@ class ConvergenceConfig:
     stall_mm: float | None = None
     """Driven RMS residual (mm) above which a stagnated frame is ``stalled``; None: a quarter of the grid cell."""
     settle_mm: float = 0.05
-    """The body has settled when the 99th-percentile particle moved less than this (mm) in the last ``th_s`` steps."""
+    """The body has settled when the 99th-percentile particle moved less than this (mm) in the last ``th_s``
+    steps and the motion still to come, extrapolated from the last two windows, is below it too."""
     wait_settled: bool = False
     """Keep stepping after the residual rule until the body has settled (or ``max_steps``)."""
 
@@ -107,13 +108,28 @@ class ConvergenceMonitor:
         self.steps = 0
         self.reason: str | None = None
         self.body_motion_mm: float = float("nan")
+        self._previous_motion_mm: float = float("nan")
 
     @property
     def settled(self) -> bool:
-        return self.body_motion_mm < self.config.settle_mm
+        """The body moved less than ``settle_mm`` in the last window, and the motion still to come,
+        extrapolated from how fast the window motion decays, is below ``settle_mm`` too (a slow creep
+        that moves little per window but far in total is not settled)."""
+        return self.body_motion_mm < self.config.settle_mm and self.remaining_mm < self.config.settle_mm
+
+    @property
+    def remaining_mm(self) -> float:
+        """Motion still to come if the window motion keeps decaying geometrically: ``d r / (1 - r)``,
+        ``r`` the ratio of the last two windows' motion (infinite when it does not decay)."""
+        d, prev = self.body_motion_mm, self._previous_motion_mm
+        if not (math.isfinite(d) and math.isfinite(prev)) or prev <= 0:
+            return float("inf")
+        r = d / prev
+        return d * r / (1.0 - r) if r < 1.0 else (0.0 if d == 0 else float("inf"))
 
     def observe_body(self, motion_mm: float) -> None:
         """The 99th-percentile particle displacement (mm) over the last ``th_s`` steps."""
+        self._previous_motion_mm = self.body_motion_mm
         self.body_motion_mm = float(motion_mm)
 
     def update(self, residual: float, rms_mm: float = 0.0) -> bool:
@@ -132,7 +148,7 @@ class ConvergenceMonitor:
             self.reason = "threshold"
         elif self.same >= c.th_s:
             self.reason = "stagnation" if rms_mm <= self.stall_mm else "stalled"
-        if self.reason is not None and c.wait_settled and not self.settled and self.steps < c.max_steps:
+        if self.reason is not None and c.wait_settled and not self.settled:
             self.reason = None  # the driven slice has converged; the body has not settled yet
         if self.reason is None and self.steps >= c.max_steps:
             self.reason = "max_steps"

@@ -158,7 +158,8 @@ def check_file_integrity(path: str) -> None:
     """Refuse a truncated or corrupt file that ITK would read as data (it fills what is missing with zeros).
 
     A gzip stream (``.gz``) must decompress to its end-of-stream marker with a matching CRC; a NIfTI-1
-    file must hold as many voxel bytes as its header announces.
+    file must hold as many voxel bytes as its header announces, and no NaN or Inf in floating-point
+    voxels (ITK reads those as 0).
     """
     import gzip
     import struct
@@ -194,6 +195,15 @@ def check_file_integrity(path: str) -> None:
     if len(data) < expected:
         raise InputError(f"{path} is truncated: its header announces {expected:,} bytes (voxels {dims[1:1 + dims[0]]}, "
                          f"{bitpix} bits each) but it holds {len(data):,}; copy it again from the source")
+    datatype = struct.unpack(endian + "h", data[70:72])[0]
+    if datatype in (16, 64):  # float32, float64: ITK's NIfTI reader turns NaN into 0 without a word
+        values = np.frombuffer(data, dtype=endian + ("f4" if datatype == 16 else "f8"), count=n, offset=vox_offset)
+        bad = np.nonzero(~np.isfinite(values))[0]
+        if len(bad):
+            nx, ny = max(int(dims[1]), 1), max(int(dims[2]), 1)
+            f = int(bad[0])
+            raise InputError(f"{path} holds {len(bad)} non-finite (NaN or Inf) voxels, the first at index (i, j, k) = "
+                             f"({f % nx}, {(f // nx) % ny}, {f // (nx * ny)}); fill or mask them before use")
 
 
 def read_volume(path: str | os.PathLike) -> sitk.Image:

@@ -255,10 +255,14 @@ def shape_based_labels(case: Case, organs, target: Geometry) -> np.ndarray:
     best = np.full(target.size[::-1], np.inf, dtype=np.float32)
     out = np.full(target.size[::-1], -1, dtype=np.int32)
     for n, organ in enumerate(organs):
-        mask = case.geometry.apply_to(sitk.GetImageFromArray(case.organ_mask(organ).astype(np.uint8)))
-        # signed distance to the organ's boundary (negative inside), in mm; the boundary lies half a
-        # voxel outside the outermost organ voxel centres, where the interpolated distance crosses zero
-        sdf = sitk.SignedMaurerDistanceMap(mask, insideIsPositive=False, squaredDistance=False, useImageSpacing=True)
+        inside = case.organ_mask(organ)
+        # signed distance to the organ's surface (negative inside), in mm. ITK's map is 0 on the outermost
+        # organ voxels and one spacing on the first voxels outside; averaging it with the map of the
+        # complement puts the zero half-way between them, where the voxel faces are, along every axis
+        a, b = (sitk.SignedMaurerDistanceMap(case.geometry.apply_to(sitk.GetImageFromArray(m.astype(np.uint8))),
+                                             insideIsPositive=False, squaredDistance=False, useImageSpacing=True)
+                for m in (inside, ~inside))
+        sdf = (a - b) * 0.5
         d = sitk.GetArrayFromImage(sitk.Resample(sdf, ref, sitk.Transform(), sitk.sitkLinear, 1e9, sitk.sitkFloat32))
         take = (d < best) & (d < 0)
         out[take] = n
@@ -274,8 +278,8 @@ def _build_on_isotropic_lattice(case: Case, organs, sampling_step: int, mats: di
     for n, organ in enumerate(organs):
         kk, jj, ii = np.nonzero(labels == n)
         if len(ii) == 0:
-            raise InputError(f"the {organ} is thinner than the {h:.2f} mm particle lattice of this scan; "
-                             "use a smaller --particle-step or lattice='voxel'")
+            raise InputError(f"particle sampling step {sampling_step} leaves no particle of the {organ}: it is thinner than the "
+                             f"{h:.2f} mm particle lattice this step gives; use a smaller step")
         p = lat.index_to_world(np.stack([ii, jj, kk], axis=1))
         pos.append(p)
         idx.append(np.full(len(p), n, dtype=np.int32))
