@@ -365,6 +365,24 @@ def test_a_volume_registration_that_fell_back_is_marked_in_the_table():
 
 # 10. ground truths that mislead ------------------------------------------------------------------
 
+def test_a_volume_registration_that_fails_on_an_expansion_is_flagged():
+    """CT sample, paper deformation 2 (scale 1.2): the masked registration ends 5.8 mm off (initial 11.5) while
+    saying nothing; the unmasked check disagrees with it by 7.8 mm and flags it. Deformation 1 stays unflagged."""
+    from warpmpm.experiment.baselines import volume_registration
+    from warpmpm.experiment.truth import make_ground_truth
+
+    labels, image = data_case("totalseg_ct")
+    flags = {}
+    for d in (1, 2):
+        cfg = CaseConfig(labels=labels, image=image, preset="totalseg_ct", deformation=d, device="cpu")
+        prep = prepare_case(cfg)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            gt = make_ground_truth(prep, cfg)
+        flags[d] = volume_registration(prep, gt, prep.full_model)[1]
+    assert not flags[1]["uncertain"] and flags[2]["uncertain"] and flags[2]["disagreement_mm"] > 4.0
+
+
 def test_contact_scenarios_differ_from_case_to_case():
     from warpmpm.experiment.truth import contact_seed
 

@@ -28,6 +28,8 @@ def format_table(out: RunResult) -> str:
         label = name
         if j.get("fallback_to_identity"):
             label += " (FAILED: fell back to no motion)"
+        elif j.get("uncertain"):
+            label += f" (uncertain: two registrations disagree by {j['disagreement_mm']:.1f} mm)"
         rows.append(f"| {label} | {r.error_mm:.2f} | {r.error_offslice_mm:.2f} | {r.p95_mm:.2f} | {r.dice:.3f} | {steps} | {wall} |")
     head = (f"case {out.case}, organs {out.organs}, slices {','.join(out.slices)}, protocol {out.protocol}"
             f" (deformation {out.deformation}), targets {out.targets}, device {out.device}, "
