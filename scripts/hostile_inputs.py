@@ -1,0 +1,174 @@
+"""Try hostile and careless inputs against the command line, as a new user would, and count the outcomes.
+
+    python scripts/hostile_inputs.py [--out hostile.md]
+
+Each case runs ``warpmpm`` (or a Python snippet) in a fresh process on the tiny phantom (or on broken copies
+of it) and is classified:
+
+- ``clear error``: exit code 2 or 3, one ``error:`` / ``simulation error:`` line, no traceback, nothing written;
+- ``handled``: exit code 0 with the reason on stderr (a ``warning:`` line), or the expected refusal;
+- ``crash``: a traceback; ``silent``: exit 0 where an error or a warning was expected; ``partial output``:
+  an output file left behind by a failed run.
+"""
+
+import argparse
+import gzip
+import os
+import subprocess
+import sys
+import tempfile
+
+ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
+TINY = ["--phantom-resolution", "3", "--device", "cpu", "--quiet", "--no-volume-registration"]
+
+
+def make_files(d):
+    """Broken copies of the tiny phantom: truncated, NaN voxels, far duodenum, junk, empty."""
+    sys.path.insert(0, ROOT)
+    from dataclasses import replace
+
+    import numpy as np
+
+    from warpmpm.images import write_case
+    from warpmpm.phantom import make_phantom
+
+    c = make_phantom(resolution=3.0)
+    write_case(c, f"{d}/labels.nii.gz", f"{d}/image.nii.gz")
+    data = open(f"{d}/labels.nii.gz", "rb").read()
+    open(f"{d}/truncated.nii.gz", "wb").write(data[: len(data) // 2])
+    raw = gzip.decompress(data)
+    open(f"{d}/short.nii.gz", "wb").write(gzip.compress(raw[: len(raw) * 2 // 3]))
+    img = c.image.copy()
+    img[2, 3, 4] = np.nan
+    write_case(replace(c, image=img), f"{d}/nan_labels.nii.gz", f"{d}/nan_image.nii.gz")
+    lab = c.labels.copy()
+    lab[lab == c.label_map["duodenum"]] = 0
+    lab[-3:, -6:, -6:] = c.label_map["duodenum"]
+    write_case(replace(c, labels=lab), f"{d}/far.nii.gz")
+    lab = c.labels.copy()
+    lab[lab == c.label_map["pancreas"]] = 0
+    write_case(replace(c, labels=lab), f"{d}/nopancreas.nii.gz")
+    open(f"{d}/junk.nii.gz", "wb").write(b"this is not an image")
+    open(f"{d}/empty.nii", "wb").write(b"")
+    open(f"{d}/junk.rrd", "wb").write(b"junk")
+    open(f"{d}/empty.rrd", "wb").write(b"")
+    small = replace(c, labels=c.labels[:, :, :20].copy(), image=c.image[:, :, :20].copy(), geometry=c.geometry.crop((0, 0, 0), (20,) + c.geometry.size[1:]))
+    write_case(small, f"{d}/other_grid.nii.gz")
+    os.makedirs(f"{d}/adir", exist_ok=True)
+
+
+def cases(d):
+    w = ["warpmpm"]
+    run = w + ["run"] + TINY
+    return [
+        # (name, argv, expected: "error" | "warning" | "ok")
+        ("missing labels file", run + ["--labels", f"{d}/nope.nii.gz"], "error"),
+        ("image without labels", run + ["--image", f"{d}/image.nii.gz"], "error"),
+        ("truncated gzip", run + ["--labels", f"{d}/truncated.nii.gz"], "error"),
+        ("complete gzip of a cut NIfTI", run + ["--labels", f"{d}/short.nii.gz"], "error"),
+        ("junk file as labels", run + ["--labels", f"{d}/junk.nii.gz"], "error"),
+        ("empty file as labels", run + ["--labels", f"{d}/empty.nii"], "error"),
+        ("NaN voxels in the image", run + ["--labels", f"{d}/nan_labels.nii.gz", "--image", f"{d}/nan_image.nii.gz"], "error"),
+        ("image on another grid", run + ["--labels", f"{d}/labels.nii.gz", "--image", f"{d}/other_grid.nii.gz"], "error"),
+        ("no pancreas in the labels", run + ["--labels", f"{d}/nopancreas.nii.gz"], "error"),
+        ("wrong preset (a far 'duodenum')", run + ["--labels", f"{d}/far.nii.gz", "--organs", "pd", "--max-steps", "50"], "warning"),
+        ("unknown preset", run + ["--preset", "foo"], "error"),
+        ("unknown organ letter", run + ["--organs", "px"], "error"),
+        ("combination without pancreas", run + ["--organs", "sd"], "error"),
+        ("slice outside the volume", run + ["--slices", "axial:9999"], "error"),
+        ("negative slice", run + ["--slices", "axial:-3"], "error"),
+        ("empty slice", run + ["--slices", "axial:0"], "error"),
+        ("bad orientation", run + ["--slices", "oblique:3"], "error"),
+        ("slice without index", run + ["--slices", "axial"], "error"),
+        ("non-integer slice", run + ["--slices", "axial:x"], "error"),
+        ("repeated slice", run + ["--slices", "axial:8,axial:8", "--organs", "p", "--max-steps", "100"], "warning"),
+        ("unknown auto mode", run + ["--slices", "auto:zz"], "error"),
+        ("deformation 0", run + ["--deformation", "0"], "error"),
+        ("deformation 9", run + ["--deformation", "9"], "error"),
+        ("negative contact scenario", run + ["--protocol", "contact", "--deformation", "-1"], "error"),
+        ("negative phantom seed", run + ["--phantom-seed", "-1"], "error"),
+        ("huge phantom seed", run + ["--phantom-seed", str(2**40)], "error"),
+        ("NaN phantom resolution", run + ["--phantom-resolution", "nan"], "error"),
+        ("zero phantom resolution", run + ["--phantom-resolution", "0"], "error"),
+        ("particle step 0", run + ["--particle-step", "0"], "error"),
+        ("particle step 1000", run + ["--particle-step", "1000"], "error"),
+        ("max steps 0", run + ["--max-steps", "0"], "error"),
+        ("rrd-every 0", run + ["--rrd-every", "0"], "error"),
+        ("--json onto a directory", run + ["--json", f"{d}/adir"], "error"),
+        ("--rrd onto a directory", run + ["--rrd", f"{d}/adir"], "error"),
+        ("--json into a missing folder", run + ["--json", f"{d}/missing/o.json"], "error"),
+        ("--device cuda without a GPU", run + ["--device", "cuda"], "error"),
+        ("missing selector model", run + ["--slices", "auto", "--selector", f"{d}/nope.json"], "error"),
+        ("junk recording", w + ["view", "--summary", f"{d}/junk.rrd"], "error"),
+        ("empty recording", w + ["view", "--summary", f"{d}/empty.rrd"], "error"),
+        ("missing recording", w + ["view", "--summary", f"{d}/nope.rrd"], "error"),
+        ("sweep: slice stride 0", w + ["sweep", "--slice-stride", "0", "--out", f"{d}/s.csv"], "error"),
+        ("sweep: bad seeds", w + ["sweep", "--phantom-seeds", "a,b", "--out", f"{d}/s.csv"], "error"),
+        ("sweep: negative seed", w + ["sweep", "--phantom-seeds", "-1", "--out", f"{d}/s.csv"], "error"),
+        ("sweep: deformation 12", w + ["sweep", "--deformations", "12", "--out", f"{d}/s.csv"], "error"),
+        ("sweep: bad organs", w + ["sweep", "--organs", "zz", "--out", f"{d}/s.csv"], "error"),
+        ("sweep: workers 0", w + ["sweep", "--workers", "0", "--out", f"{d}/s.csv"], "error"),
+        ("multi: top 0", w + ["multi", "--top", "0", "--out", f"{d}/m.csv"], "error"),
+        ("train: missing CSV", w + ["train", f"{d}/nope.csv"], "error"),
+        ("cfl 3 (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; SolverConfig(cfl=3)"], "error"),
+        ("cfl 0 (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; SolverConfig(cfl=0)"], "error"),
+        ("NaN extra points (API)", ["python", "-c", "import numpy as np; from warpmpm.scenes import block_model; "
+                                    "from warpmpm.solver import MPMModel, SolverConfig; "
+                                    "MPMModel(block_model((3,3,3)), SolverConfig(device='cpu'), np.full((1,3), np.nan))"], "error"),
+        ("cell smaller than the slice gap (API)", ["python", "-c", "from warpmpm.images import *; import numpy as np; "
+                                                   "from warpmpm.model import build_model; from warpmpm.solver import MPMModel, SolverConfig; "
+                                                   "l=np.zeros((10,20,20),np.int32); l[2:8,4:16,4:16]=10; "
+                                                   "m=build_model(Case(l, Geometry((20,20,10),(0.8,0.8,5.0),(0,0,0)), PRESETS['amos']), 'p', lattice='voxel'); "
+                                                   "MPMModel(m, SolverConfig(device='cpu', cell_size_mm=1.0))"], "error"),
+    ]
+
+
+def classify(proc, expected, outputs_before, d, api=False):
+    err = proc.stderr
+    left = set(os.listdir(d)) - outputs_before
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    if api and lines and lines[-1].startswith("warpmpm.errors.InputError"):
+        return "clear error"  # the API raises InputError naming the problem (a traceback is how Python shows it)
+    if "Traceback" in err:
+        return "crash"
+    if proc.returncode not in (0,) and left:
+        return "partial output"
+    if expected == "error":
+        if proc.returncode in (2, 3) and lines and (lines[-1].startswith(("error:", "simulation error:"))
+                                                    or lines[-1].startswith("warpmpm") and ": error:" in lines[-1]):  # argparse
+            return "clear error"
+        return "silent" if proc.returncode == 0 else f"unclear (exit {proc.returncode})"
+    if expected == "warning":
+        return "handled" if proc.returncode == 0 and "warning:" in err else ("clear error" if proc.returncode == 2 else "silent")
+    return "handled" if proc.returncode == 0 else f"unexpected exit {proc.returncode}"
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default=None, help="write the table here (Markdown)")
+    a = p.parse_args(argv)
+    exe = os.path.join(os.path.dirname(sys.executable), "warpmpm")
+    with tempfile.TemporaryDirectory() as d:
+        make_files(d)
+        rows, counts = [], {}
+        for name, argv_, expected in cases(d):
+            cmd = [exe] + argv_[1:] if argv_[0] == "warpmpm" else [sys.executable] + argv_[1:]
+            before = set(os.listdir(d))
+            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=d, timeout=600, env=dict(os.environ, PYTHONPATH=ROOT))
+            outcome = classify(proc, expected, before, d, api=argv_[0] == "python")
+            counts[outcome] = counts.get(outcome, 0) + 1
+            lines = proc.stderr.strip().splitlines() or [""]
+            last = (next((ln for ln in lines if ln.startswith("warning:")), lines[-1]) if expected == "warning" else lines[-1])[:150]
+            rows.append(f"| {name} | {expected} | {outcome} | {last} |")
+            print(rows[-1], flush=True)
+    table = "| input | expected | outcome | last stderr line |\n|---|---|---|---|\n" + "\n".join(rows)
+    summary = f"{len(rows)} hostile inputs: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items()))
+    print(summary)
+    if a.out:
+        with open(a.out, "w") as f:
+            f.write(table + "\n\n" + summary + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
