@@ -417,3 +417,36 @@ def test_progress_names_the_model_size_grid_and_memory_first(tmp_path, capsys):
     assert first.startswith("model: ") and "particles" in first and "grid" in first and "MB" in first
     assert any(ln.startswith("ground truth: ") and "steps" in ln for ln in err)
     assert json.loads((tmp_path / "o.json").read_text())["results"]["estimate"]["settled"] in (True, False)
+
+
+def test_killing_a_sweep_ends_its_workers(tmp_path):
+    """kill -9 of a --workers 2 sweep left its two workers simulating for nobody."""
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "warpmpm.cli", "sweep", "--phantom-seeds", "0,1", "--phantom-resolution", "3",
+                             "--deformations", "1,2", "--workers", "2", "--out", str(tmp_path / "s.csv")],
+                            cwd=tmp_path, env=dict(os.environ, PYTHONPATH=ROOT), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def children(pid):
+        try:
+            with open(f"/proc/{pid}/task/{pid}/children") as f:
+                return [int(c) for c in f.read().split()]
+        except OSError:
+            return []
+
+    deadline = time.time() + 120
+    kids = []
+    while time.time() < deadline and len(kids) < 2:
+        kids = [c for c in children(proc.pid) if "spawn_main" in open(f"/proc/{c}/cmdline").read().replace("\0", " ")]
+        time.sleep(0.5)
+    assert len(kids) >= 2, "the pool did not start"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    deadline = time.time() + 20
+    while time.time() < deadline and any(os.path.exists(f"/proc/{k}") and open(f"/proc/{k}/stat").read().split()[2] != "Z" for k in kids):
+        time.sleep(0.5)
+    alive = [k for k in kids if os.path.exists(f"/proc/{k}") and open(f"/proc/{k}/stat").read().split()[2] != "Z"]
+    for k in alive:
+        os.kill(k, signal.SIGKILL)
+    assert not alive, "workers outlived the sweep"
