@@ -76,7 +76,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
                    "'auto:asc': psdl, that axial slice plus the best sagittal and/or coronal slice; default: mid-pancreas axial")
     p.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (under contact: the scenario number)")
-    p.add_argument("--targets", default="affine", choices=["affine", "gt", "registration"])
+    p.add_argument("--targets", default="affine", choices=["affine", "gt", "gt-inplane", "registration", "registration-affine"],
+                   help="slice motion: fitted affine, GT 3D positions (upper bound), GT in-plane part (ceiling of 2D "
+                   "registration), organ-aware registration of captured slices, or one registered affine per slice")
+    p.add_argument("--drive", default="pinned", choices=["inplane", "pinned"],
+                   help="inplane: a slice drives only its in-plane components; pinned: the through-plane coordinate too")
     p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
     p.add_argument("--literal-angles", action="store_true", help="read the paper's r, g literally as r/2pi radians")
     p.add_argument("--max-steps", type=int, default=6000)
@@ -109,7 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(phantom_resolution=2.0)
     s.add_argument("--organs", default="psdl", help="comma-separated combinations, or 'all'")
     s.add_argument("--orientations", default="axial")
-    s.add_argument("--targets", default="affine", choices=["affine", "gt", "registration"])
+    s.add_argument("--targets", default="affine", choices=["affine", "gt", "gt-inplane", "registration", "registration-affine"])
+    s.add_argument("--drive", default="pinned", choices=["inplane", "pinned"])
     s.add_argument("--exclude-driven", action="store_true",
                    help="leave the driven particles out of the metrics (the multi-direction rule; default: only with several slices)")
     s.add_argument("--slice-stride", type=int, default=1)
@@ -188,7 +193,7 @@ def config_from_args(a):
     step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
     baselines = ("initial", "propagate") if a.no_volume_registration else ("initial", "propagate", "volume_registration")
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
-                      organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets,
+                      organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets, drive=a.drive,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every)
 
@@ -265,7 +270,7 @@ def cmd_sweep(a) -> int:
     cases, deformations = _tasks_common(a)
     combos = COMBINATIONS if a.organs == "all" else tuple(a.organs.split(","))
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
-    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device, targets=a.targets, max_steps=a.max_steps,
+    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device, targets=a.targets, drive=a.drive, max_steps=a.max_steps,
                       exclude_driven=True if a.exclude_driven else None)
     for combo in combos:
         replace(base, organs=combo)  # each combination checked before any task starts

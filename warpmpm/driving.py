@@ -226,6 +226,7 @@ class DriveConfig:
 def pid_force(
     driven: wp.array(dtype=int),
     target: wp.array(dtype=wp.vec3),
+    axes: wp.array(dtype=wp.mat33),
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
@@ -241,19 +242,22 @@ def pid_force(
     sums: wp.array(dtype=float, ndim=2),
     row: int,
 ):
-    """PID force on driven particle ``driven[j]`` toward ``target[j]``; accumulates the residual sums
-    ``sums[row] = [sum |e|^2, sum |target - centre|^2]`` (one row per step, read back in batches)."""
+    """PID force on driven particle ``driven[j]`` toward ``target[j]`` along the directions ``axes[j]`` drives
+    (a projector: the identity pins all three components, a slice plane's projector only the in-plane
+    ones); accumulates the residual sums ``sums[row] = [sum |e|^2, sum |target - centre|^2]`` over the
+    driven directions (one row per step, read back in batches)."""
     j = wp.tid()
     p = driven[j]
-    e = target[j] - x[p]
+    P = axes[j]
+    e = P * (target[j] - x[p])
     acc_i = integral[j] + e * dt
     integral[j] = acc_i
-    a = bias[j] + kp * e - kd * v[p] + ki * acc_i
+    a = bias[j] + kp * e - kd * (P * v[p]) + ki * acc_i
     n = wp.length(a)
     if n > max_accel:
         a = a * (max_accel / n)
     f_ext[p] = mass[p] * a
-    r = target[j] - centre
+    r = P * (target[j] - centre)
     wp.atomic_add(sums, row, 0, wp.dot(e, e))
     wp.atomic_add(sums, row, 1, wp.dot(r, r))
 
@@ -336,6 +340,7 @@ class SliceDrivenEstimator:
         nd = len(self.driven)
         self._driven_wp = wp.array(self.driven.astype(np.int32), dtype=int, device=d)
         self._target = wp.zeros(nd, dtype=wp.vec3, device=d)
+        self._axes = wp.array(np.tile(np.eye(3, dtype=np.float32), (nd, 1, 1)), dtype=wp.mat33, device=d)
         self._integral = wp.zeros(nd, dtype=wp.vec3, device=d)
         self._bias = wp.zeros(nd, dtype=wp.vec3, device=d)
         self._force = wp.zeros(model.n, dtype=wp.vec3, device=d)
@@ -371,7 +376,7 @@ class SliceDrivenEstimator:
         g, dt, d, nd = self.gains, self.mpm.dt_s, self.mpm.device, len(self.driven)
         self._sums.zero_()
         for row in range(self.sync_every):
-            wp.launch(pid_force, nd, [self._driven_wp, self._target, self.state.x, self.state.v, self.mpm.mass, self._integral,
+            wp.launch(pid_force, nd, [self._driven_wp, self._target, self._axes, self.state.x, self.state.v, self.mpm.mass, self._integral,
                                       self._bias, self._centre, g.kp_per_s2, g.kd_per_s, g.ki_per_s3,
                                       g.max_accel_m_s2, dt, self._force, self._sums, row], device=d)
             self.solver.step(self.state, self._other, self._force, check=check)
@@ -401,8 +406,13 @@ class SliceDrivenEstimator:
             raise SimulationError(f"{exc} (graph replay: the step is counted within a batch of {self.sync_every}; "
                                   f"this batch ended at step {self.solver.step_count})") from None
 
-    def estimate(self, targets_mm: np.ndarray, convergence: ConvergenceConfig | None = None, carry_force: bool = True) -> DriveResult:
+    def estimate(self, targets_mm: np.ndarray, convergence: ConvergenceConfig | None = None, carry_force: bool = True,
+                 axes: np.ndarray | None = None) -> DriveResult:
         """Drive the driven particles to ``targets_mm`` (n_driven, 3) until convergence; one frame.
+
+        ``axes`` (n_driven, 3, 3): per driven particle, the projector onto the directions that are driven
+        (:func:`warpmpm.targets.plane_projector`: a slice drives its in-plane components and leaves the
+        through-plane one to the physics); None drives all three components (the default).
 
         The PID integral restarts at zero every frame. With ``carry_force`` (default) the integral
         action that held the previous frame's equilibrium is kept as a constant feed-forward term,
@@ -419,6 +429,13 @@ class SliceDrivenEstimator:
         if np.any(targets_mm < lo) or np.any(targets_mm > hi):
             raise InputError("targets lie outside the simulation grid; build the estimator with extra_points_mm covering them "
                              f"or a larger SolverConfig.margin_mm (now {self.mpm.config.margin_mm} mm)")
+        nd = len(self.driven)
+        if axes is None:
+            axes = np.tile(np.eye(3), (nd, 1, 1))
+        axes = np.asarray(axes, dtype=np.float64)
+        if axes.shape != (nd, 3, 3) or not np.all(np.isfinite(axes)):
+            raise InputError(f"driven axes must be finite projectors of shape ({nd}, 3, 3), got {axes.shape}")
+        self._axes.assign(axes.astype(np.float32))
         conv = ConvergenceMonitor(convergence or self.convergence, stall_mm=0.25 * self.mpm.dx_mm)
         window = conv.config.th_s
         last_x = self.state.x.numpy().copy()  # on the CPU .numpy() is a view of the live buffer
@@ -431,7 +448,6 @@ class SliceDrivenEstimator:
         self._force.zero_()
         g = self.gains
         rel_hist, rms_hist = [], []
-        nd = len(self.driven)
         t0 = time.perf_counter()
         done = False
         step = 0

@@ -72,7 +72,8 @@ class SliceRegistration:
 
 def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, *, mask: sitk.Image | None = None,
                     metric: str = "correlation", iterations: int = 100, levels: tuple[int, ...] = (4, 2, 1),
-                    sampling: float = 0.25, seed: int = 1, crop_margin_mm: float = 40.0) -> SliceRegistration:
+                    sampling: float = 0.25, seed: int = 1, crop_margin_mm: float = 40.0,
+                    initial: InPlaneAffine | None = None) -> SliceRegistration:
     """2D affine registration of the stored slice (t-1) onto the captured slice (t).
 
     ``metric``: ``correlation`` (normalised cross-correlation: robust to the intensity scaling
@@ -124,6 +125,10 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
         reg.SetMetricMovingMask(mask)  # the contour belongs to the stored slice (t-1)
     tx = sitk.AffineTransform(2)
     tx.SetCenter((0.0, 0.0))
+    if initial is not None:  # start from a known motion (e.g. the whole slice's, for one organ's footprint)
+        inv = initial.inverse()
+        tx.SetMatrix(inv.A.ravel().tolist())
+        tx.SetTranslation(inv.t_mm.tolist())
     reg.SetInitialTransform(tx, inPlace=True)
     reg.SetInterpolator(sitk.sitkLinear)
     reg.SetOptimizerAsRegularStepGradientDescent(learningRate=2.0, minStep=1e-3, numberOfIterations=iterations,
@@ -150,12 +155,69 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
                              int(reg.GetOptimizerIteration()), reg.GetOptimizerStopConditionDescription(), wall, ok)
 
 
+def register_slice_organs(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, mask: sitk.Image,
+                          organ_masks: dict[str, sitk.Image], min_pixels: int = 25,
+                          max_slide_mm: float = 10.0) -> tuple[SliceRegistration, dict]:
+    """Organ-aware 2D registration: the whole slice (metric over ``mask``), then each organ's footprint on it
+    (``organ_masks``: organ -> its pixels on the stored slice) on its own, starting from the whole slice's
+    motion, so organs on one slice may move apart or slide along each other. An organ's own motion is kept
+    only when it fits the organ's footprint better than the whole slice's motion does, stays within
+    ``max_slide_mm`` of it and scales by 0.8-1.25 of it; an organ with fewer than ``min_pixels`` pixels,
+    or whose own motion is refused, takes the whole slice's.
+
+    Returns the whole slice's :class:`SliceRegistration` and organ -> :class:`SliceRegistration`.
+    """
+    whole = register_slices(stored, captured, centre_mm, mask=mask)
+    out = {}
+    if not whole.ok:
+        return whole, out
+    for organ, own in organ_masks.items():
+        pix = sitk.GetArrayViewFromImage(own)
+        if int(np.count_nonzero(pix)) < min_pixels:
+            continue
+        radius = [max(1, int(round(4.0 / sp))) for sp in own.GetSpacing()]  # the organ's edge is in its footprint
+        footprint = sitk.BinaryDilate(sitk.Cast(own, sitk.sitkUInt8), radius)
+        r = register_slices(stored, captured, centre_mm, mask=footprint, initial=whole.affine, levels=(2, 1), iterations=60)
+        if r.ok and _organ_motion_plausible(own, whole.affine, r.affine, max_slide_mm) and \
+                slice_metric(stored, captured, footprint, r.affine) < slice_metric(stored, captured, footprint, whole.affine):
+            out[organ] = r
+    return whole, out
+
+
+def _organ_motion_plausible(own: sitk.Image, whole: InPlaneAffine, organ: InPlaneAffine, max_slide_mm: float) -> bool:
+    """An organ's own motion stays within ``max_slide_mm`` of the whole slice's on its pixels, and its
+    scale within 0.8-1.25 of the whole slice's (a small footprint can register to nonsense)."""
+    jj, ii = np.nonzero(sitk.GetArrayViewFromImage(own))
+    o, sp = np.asarray(own.GetOrigin()), np.asarray(own.GetSpacing())
+    uv = np.stack([o[0] + ii * sp[0], o[1] + jj * sp[1]], axis=1)
+    diff = np.linalg.norm(uv @ (organ.A - whole.A).T + (organ.t_mm - whole.t_mm), axis=1)
+    ratio = np.linalg.svd(organ.A @ np.linalg.inv(whole.A), compute_uv=False)
+    return bool(diff.max() <= max_slide_mm and 0.8 <= ratio.min() and ratio.max() <= 1.25)
+
+
+def slice_metric(stored: sitk.Image, captured: sitk.Image, mask: sitk.Image, affine: InPlaneAffine) -> float:
+    """Normalised correlation metric (lower is better) between the captured slice and the stored slice moved by
+    ``affine``, over ``mask`` (on the stored slice)."""
+    inv = affine.inverse()
+    tx = sitk.AffineTransform(2)
+    tx.SetMatrix(inv.A.ravel().tolist())
+    tx.SetTranslation(inv.t_mm.tolist())
+    reg = sitk.ImageRegistrationMethod()
+    reg.SetMetricAsCorrelation()
+    reg.SetMetricMovingMask(sitk.Cast(mask, sitk.sitkUInt8))
+    reg.SetInitialTransform(tx)
+    reg.SetInterpolator(sitk.sitkLinear)
+    return float(reg.MetricEvaluate(sitk.Cast(captured, sitk.sitkFloat32), sitk.Cast(stored, sitk.sitkFloat32)))
+
+
 def slice_mask(labels: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray, label_values,
                dilate_mm: float = 6.0) -> sitk.Image:
     """Mask of the given labels on a slice, dilated by ``dilate_mm`` so organ edges are in."""
     m = np.isin(labels, list(label_values)).astype(np.float32)
     img = extract_slice(m, geometry, orientation, index, centre_mm)
     img = sitk.Cast(img > 0.5, sitk.sitkUInt8)
+    if dilate_mm <= 0:
+        return img
     radius = [max(1, int(round(dilate_mm / s))) for s in img.GetSpacing()]
     return sitk.BinaryDilate(img, radius)
 

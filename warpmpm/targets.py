@@ -1,24 +1,96 @@
 """Targets of the driven particles: where each particle on a driving slice must go this frame.
 
-Three sources, all returning ``(idx, targets_mm)``: the sorted indices of the driven particles and
-their (n_driven, 3) world targets in mm.
+A slice measures motion in its own plane only. Targets carry, per driven particle, the directions its
+slices measure (:class:`DriveTargets`), so the drive can act on those alone and leave the through-plane
+motion to the physics or to a second, orthogonal slice.
 
-- :func:`affine_targets`: one :class:`~warpmpm.slices.InPlaneAffine` per slice (the paper's mode):
-  ``x_i^t = A (x_i^{t-1} - c) + c + t`` in the slice plane, the out-of-plane coordinate unchanged.
-- :func:`truth_targets`: given 3D positions (the ground truth's, an upper bound no image gives).
+- :func:`affine_targets` / :func:`affine_drive_targets`: one :class:`~warpmpm.slices.InPlaneAffine` per
+  slice (the paper's mode): ``x_i^t = A (x_i^{t-1} - c) + c + t`` in the slice plane.
+- :func:`truth_targets`: given 3D positions (the ground truth's: an upper bound no image gives);
+  :func:`in_plane_truth_targets`: their in-plane part (the best any 2D registration can give).
 - :func:`registration_targets`: register each slice of a planning volume to the same slice of a
-  captured volume (2D affine, SimpleITK) and apply the result as above.
+  captured volume (SimpleITK), the whole slice and then each organ's footprint on it.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+import SimpleITK as sitk
 
 from .errors import InputError
 from .images import Geometry
 from .model import ParticleModel
-from .registration import capture_slice, register_slices, slice_mask
+from .registration import capture_slice, register_slice_organs, slice_mask
 from .slices import DrivingSlice, InPlaneAffine, driven_indices, extract_slice, in_plane_axes
+
+
+def plane_projector(model_or_geometry, orientation: str) -> np.ndarray:
+    """(3, 3) projector onto a slice's plane: ``e_u e_u^T + e_v e_v^T``."""
+    e_u, e_v = in_plane_axes(model_or_geometry, orientation)
+    return np.outer(e_u, e_u) + np.outer(e_v, e_v)
+
+
+@dataclass
+class DriveTargets:
+    """What a frame drives: particles, targets and, per particle, the directions a slice measures.
+
+    Attributes:
+        idx: (n,) sorted indices of the driven particles.
+        targets_mm: (n, 3) targets; along directions no slice measures, the previous position.
+        axes: (n, 3, 3) projector onto the directions the particle's slices measure (a slice's plane; two
+            orthogonal slices through a particle measure all three directions). Passed to
+            :meth:`~warpmpm.driving.SliceDrivenEstimator.estimate` it drives only those (in-plane driving).
+    """
+
+    idx: np.ndarray
+    targets_mm: np.ndarray
+    axes: np.ndarray
+
+
+def slice_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[DrivingSlice], moved) -> DriveTargets:
+    """Combine per-slice in-plane targets into one target per driven particle.
+
+    ``moved(s, idx)`` gives the targets (len(idx), 3) of the particles ``idx`` on slice ``s``; only their
+    in-plane components count. A particle on several slices takes each slice's in-plane components, in
+    the least-squares sense where two slices measure the same direction:
+    ``x = pinv(sum P_s) sum P_s t_s + (I - Q) x_prev`` with ``P_s`` the slices' plane projectors and
+    ``Q`` the projector onto what they span.
+    """
+    positions_mm = np.asarray(positions_mm, dtype=np.float64)
+    A = np.zeros((model.n, 3, 3))
+    b = np.zeros((model.n, 3))
+    on_any = np.zeros(model.n, dtype=bool)
+    for s in slices:
+        idx = driven_indices(model, [s])
+        P = plane_projector(model, s.orientation)
+        t = np.asarray(moved(s, idx), dtype=np.float64)
+        A[idx] += P
+        b[idx] += t @ P.T
+        on_any[idx] = True
+    idx = np.nonzero(on_any)[0]
+    A, b, x = A[idx], b[idx], positions_mm[idx]
+    Ainv = np.linalg.pinv(A, rcond=1e-6)
+    Q = np.einsum("nij,njk->nik", A, Ainv)
+    Q = np.where(np.abs(Q) < 1e-9, 0.0, Q)
+    targets = np.einsum("nij,nj->ni", Ainv, b) + x - np.einsum("nij,nj->ni", Q, x)
+    return DriveTargets(idx, targets, Q)
+
+
+def affine_drive_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[DrivingSlice], affines: list,
+                         centre_mm: np.ndarray | None = None) -> DriveTargets:
+    """:class:`DriveTargets` from one in-plane affine per driving slice (:func:`affine_targets`)."""
+    if len(affines) != len(slices):
+        raise InputError(f"{len(slices)} driving slices but {len(affines)} affines")
+    centre = model.geometry.center_mm() if centre_mm is None else np.asarray(centre_mm, dtype=np.float64)
+    by_slice = {s: InPlaneAffine.of(a) for s, a in zip(slices, affines)}
+
+    def moved(s, idx):
+        e_u, e_v = in_plane_axes(model, s.orientation)
+        return by_slice[s].apply(positions_mm[idx], e_u, e_v, centre)
+
+    return slice_targets(model, positions_mm, slices, moved)
 
 
 def affine_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[DrivingSlice], affines: list,
@@ -27,24 +99,10 @@ def affine_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[
 
     ``affines``: :class:`InPlaneAffine` (or ``(A, t_mm)`` pairs), one per slice. ``positions_mm`` is
     the state at t-1 (all particles); ``centre_mm`` defaults to the volume centre. A particle on two
-    slices takes the target of the first.
+    slices takes each slice's in-plane components (:func:`slice_targets`).
     """
-    if len(affines) != len(slices):
-        raise InputError(f"{len(slices)} driving slices but {len(affines)} affines")
-    centre = model.geometry.center_mm() if centre_mm is None else np.asarray(centre_mm, dtype=np.float64)
-    idx_all, tgt_all = [], []
-    taken = np.zeros(model.n, dtype=bool)
-    for s, aff in zip(slices, affines):
-        aff = InPlaneAffine.of(aff)
-        idx = driven_indices(model, [s])
-        idx = idx[~taken[idx]]
-        taken[idx] = True
-        e_u, e_v = in_plane_axes(model, s.orientation)
-        idx_all.append(idx)
-        tgt_all.append(aff.apply(positions_mm[idx], e_u, e_v, centre))
-    idx = np.concatenate(idx_all)
-    order = np.argsort(idx)
-    return idx[order], np.concatenate(tgt_all)[order]
+    t = affine_drive_targets(model, positions_mm, slices, affines, centre_mm)
+    return t.idx, t.targets_mm
 
 
 def truth_targets(model: ParticleModel, slices: list[DrivingSlice], truth_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -54,6 +112,15 @@ def truth_targets(model: ParticleModel, slices: list[DrivingSlice], truth_mm: np
         raise InputError(f"truth positions must have shape ({model.n}, 3), got {truth_mm.shape}")
     idx = driven_indices(model, slices)
     return idx, truth_mm[idx]
+
+
+def in_plane_truth_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[DrivingSlice],
+                           truth_mm: np.ndarray) -> DriveTargets:
+    """The true motion projected on each slice's plane: the best any 2D registration of the slices can give."""
+    truth_mm = np.asarray(truth_mm, dtype=np.float64)
+    if truth_mm.shape != (model.n, 3):
+        raise InputError(f"truth positions must have shape ({model.n}, 3), got {truth_mm.shape}")
+    return slice_targets(model, positions_mm, slices, lambda s, idx: truth_mm[idx])
 
 
 def in_plane_errors_mm(model: ParticleModel, slices: list[DrivingSlice], idx: np.ndarray, targets_mm: np.ndarray,
@@ -69,35 +136,62 @@ def in_plane_errors_mm(model: ParticleModel, slices: list[DrivingSlice], idx: np
     return np.concatenate(errs) if errs else np.zeros(0)
 
 
+#: Smallest footprint (pixels) of an organ on a slice for it to be registered on its own.
+MIN_ORGAN_PIXELS = 25
+
+
 def registration_targets(model: ParticleModel, slices: list[DrivingSlice], planning_volume: np.ndarray,
                          captured_volume: np.ndarray, labels: np.ndarray, geometry: Geometry, label_values: dict[str, int],
                          centre_mm: np.ndarray, *, truth_mm: np.ndarray | None = None, noise_sd: float = 0.0,
-                         in_plane_factor: float = 1.0) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Driven indices and targets from registering each driving slice of ``planning_volume`` with the
-    same slice of ``captured_volume`` (both (z, y, x) on ``geometry``).
+                         in_plane_factor: float = 1.0, organs: bool = True, positions_mm: np.ndarray | None = None,
+                         ) -> tuple[DriveTargets, dict]:
+    """Targets from registering each driving slice of ``planning_volume`` with the same slice of
+    ``captured_volume`` (both (z, y, x) on ``geometry``); ``positions_mm`` is the state at t-1 (default: planning).
 
-    The metric is restricted to the model's organs on the planning slice (``labels`` with
-    ``label_values``, dilated). Returns ``(idx, targets, info)``; ``info`` holds per slice the
-    registered affine, its time and iterations (``slices``), the mean time (``wall_s``) and, when
-    ``truth_mm`` (all particles' true positions) is given, ``error_mm``: the mean in-plane distance
-    between the targets and the true positions of the slices' pancreas particles.
+    The whole slice is registered with a 2D affine, the metric restricted to the model's organs on it
+    (``labels`` with ``label_values``, dilated): the paper's mode, ``organs=False``. With ``organs`` (the
+    default) each organ's footprint on the slice is then registered on its own, starting from the whole
+    slice's motion, and every particle takes its own organ's motion: organs on one slice may move apart
+    or slide along each other (one affine would follow the pushed neighbour and move the pancreas with
+    it). An organ with fewer than :data:`MIN_ORGAN_PIXELS` pixels on the slice takes the whole slice's.
+
+    Returns ``(targets, info)``; ``info`` holds the whole-slice affines (``affines``, one per slice),
+    each slice's organ affines (``organ_affines``: slice -> organ -> affine), the mean time per slice
+    (``wall_s``), and with ``truth_mm`` (all particles' true positions) ``error_mm`` and ``median_error_mm``:
+    the in-plane distance between the targets and the true positions of the slices' pancreas particles.
     """
-    affines, per_slice = [], []
+    positions_mm = model.positions_mm if positions_mm is None else np.asarray(positions_mm, dtype=np.float64)
+    affines, organ_affines, walls = [], {}, []
     for s in slices:
         stored = extract_slice(planning_volume, geometry, s.orientation, s.index, centre_mm)
         captured = capture_slice(captured_volume, geometry, s.orientation, s.index, centre_mm, noise_sd=noise_sd,
                                  in_plane_factor=in_plane_factor)
         mask = slice_mask(labels, geometry, s.orientation, s.index, centre_mm, [label_values[o] for o in model.organs])
-        reg = register_slices(stored, captured, centre_mm, mask=mask)
-        if not reg.ok:
-            raise InputError(f"registration of {s.orientation} slice {s.index} gave a degenerate transform ({reg.stop}); "
+        own = {o: slice_mask(labels, geometry, s.orientation, s.index, centre_mm, [label_values[o]], dilate_mm=0.0)
+               for o in model.organs} if organs else {}
+        whole, per_organ = register_slice_organs(stored, captured, centre_mm, mask, own, MIN_ORGAN_PIXELS)
+        if not whole.ok:
+            raise InputError(f"registration of {s.orientation} slice {s.index} gave a degenerate transform ({whole.stop}); "
                              "targets would be nonsense")
-        affines.append(reg.affine)
-        per_slice.append({"slice": str(s), **reg.affine.to_json(), "wall_s": reg.wall_s, "iterations": reg.iterations,
-                          "metric": reg.metric})
-    idx, targets = affine_targets(model, model.positions_mm, slices, affines, centre_mm)
-    info: dict = {"wall_s": float(np.mean([p["wall_s"] for p in per_slice])), "slices": per_slice, "affines": affines}
+        affines.append(whole.affine)
+        organ_affines[s] = {o: r.affine for o, r in per_organ.items()}
+        walls.append(whole.wall_s + sum(r.wall_s for r in per_organ.values()))
+
+    whole = dict(zip(slices, affines))
+    organ_of = np.asarray(model.organs)[model.organ_index]
+
+    def moved(s, idx):
+        e_u, e_v = in_plane_axes(model, s.orientation)
+        out = whole[s].apply(positions_mm[idx], e_u, e_v, centre_mm)
+        for organ, aff in organ_affines[s].items():
+            sel = organ_of[idx] == organ
+            out[sel] = aff.apply(positions_mm[idx[sel]], e_u, e_v, centre_mm)
+        return out
+
+    targets = slice_targets(model, positions_mm, slices, moved)
+    info: dict = {"wall_s": float(np.mean(walls)), "affines": affines, "organ_affines": organ_affines, "organs": bool(organs)}
     if truth_mm is not None:
-        err = in_plane_errors_mm(model, slices, idx, targets, truth_mm)
+        err = in_plane_errors_mm(model, slices, targets.idx, targets.targets_mm, truth_mm)
         info["error_mm"] = float(err.mean()) if err.size else float("nan")
-    return idx, targets, info
+        info["median_error_mm"] = float(np.median(err)) if err.size else float("nan")
+    return targets, info

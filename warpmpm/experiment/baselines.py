@@ -3,7 +3,8 @@
 - ``initial``: no motion (the planning positions).
 - ``propagate``: the first driving slice's in-plane motion applied to every particle (what copying the
   slice's motion to the whole volume gives; nearly exact under the paper protocol, whose GT applies
-  one 2D affine to every slice).
+  one 2D affine to every slice). With organ-aware registration targets each organ takes its own motion
+  on the slice (the same information as the estimate), and ``propagate_affine`` is the whole slice's.
 - ``volume_registration``: 3D affine registration of the planning volume to the GT volume (the
   paper's elastix comparison; it needs the whole 3D volume at time t, which a cine MR does not give).
 """
@@ -21,10 +22,17 @@ from .capture import planning_and_gt_volumes
 from .case import PreparedCase
 
 
-def propagate(model: ParticleModel, s: DrivingSlice, affine: InPlaneAffine, centre_mm: np.ndarray) -> np.ndarray:
-    """Every particle moved by the slice's in-plane motion (mm)."""
+def propagate(model: ParticleModel, s: DrivingSlice, affine: InPlaneAffine, centre_mm: np.ndarray,
+              organ_affines: dict | None = None) -> np.ndarray:
+    """Every particle moved by the slice's in-plane motion (mm), extruded along the slice normal; with
+    ``organ_affines`` (organ-aware registration) each organ's particles take their organ's motion on the
+    slice, the organs absent from it the whole slice's: the same information the estimate is driven with."""
     e_u, e_v = in_plane_axes(model, s.orientation)
-    return affine.apply(model.positions_mm, e_u, e_v, centre_mm)
+    out = affine.apply(model.positions_mm, e_u, e_v, centre_mm)
+    for organ, aff in (organ_affines or {}).items():
+        sel = model.organ_slice(organ)
+        out[sel] = aff.apply(model.positions_mm[sel], e_u, e_v, centre_mm)
+    return out
 
 
 #: Two volume registrations of one case that disagree by more than this (mm, mean over the model's

@@ -19,12 +19,14 @@ from ..slices import parse_slices
 from ..solver import SolverConfig
 
 Protocol = Literal["paper", "contact"]
-TargetKind = Literal["affine", "gt", "registration"]
+TargetKind = Literal["affine", "gt", "gt-inplane", "registration", "registration-affine"]
+DriveMode = Literal["inplane", "pinned"]
 Lattice = Literal["auto", "voxel", "isotropic"]
 Baseline = Literal["initial", "propagate", "volume_registration"]
 
 PROTOCOLS: tuple[str, ...] = get_args(Protocol)
 TARGET_KINDS: tuple[str, ...] = get_args(TargetKind)
+DRIVE_MODES: tuple[str, ...] = get_args(DriveMode)
 BASELINES: tuple[str, ...] = get_args(Baseline)
 
 #: ``--slices`` values that ask the selection models for the condition (see :mod:`warpmpm.experiment.auto`).
@@ -62,8 +64,13 @@ class CaseConfig:
     deformation: int = 1
     """Paper deformation type 1..8; under ``contact`` it numbers the scenario (>= 1)."""
     targets: TargetKind = "affine"
-    """Where the driven particles' targets come from: the slice affine fitted to the GT, the GT's 3D
-    positions (an upper bound no image gives), or registration of synthetic captured slices."""
+    """Where the driven particles' targets come from (:mod:`warpmpm.experiment.targets`): the slice affine
+    fitted to the GT, the GT's 3D positions (an upper bound no image gives), their in-plane part (the
+    ceiling of any 2D registration), or registration of synthetic captured slices (organ-aware, or one
+    affine per slice)."""
+    drive: DriveMode = "pinned"
+    """``inplane``: a slice drives only the components in its plane; ``pinned``: also the through-plane
+    coordinate (held where it was). ``gt`` targets are always driven in 3D."""
     device: str | None = None
     """Warp device: ``cpu``, ``cuda`` or ``cuda:N``; None: CUDA when available."""
     particle_step: int = 1
@@ -117,6 +124,8 @@ class CaseConfig:
             raise InputError(f"deformation must be 1..8 under the paper protocol, got {self.deformation}")
         if self.protocol == "contact" and not (1 <= self.deformation <= 10_000):
             raise InputError(f"the contact scenario number (--deformation) must be in 1..10000, got {self.deformation}")
+        if self.drive not in DRIVE_MODES:
+            raise InputError(f"unknown drive mode {self.drive!r}; use {' or '.join(DRIVE_MODES)}")
         if self.targets not in TARGET_KINDS:
             raise InputError(f"unknown targets {self.targets!r}; use {', '.join(TARGET_KINDS)}")
         if self.device is not None and self.device != "cpu" and not str(self.device).startswith("cuda"):

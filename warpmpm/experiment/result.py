@@ -73,7 +73,9 @@ class RunResult:
         n_particles: per organ. n_driven: driven particles. excluded_driven: whether they were left out
         of the metrics. solver: the estimator's grid, time step and damping. gains: the PID gains in
         physical units. gt: the GT's parameters, steps and time. results: method -> :class:`Scores`.
-        registration: the slice registration's own error and time (``targets="registration"``).
+        registration: the slice registration's own error and time (the registration target kinds).
+        drive: ``inplane``, ``pinned`` or ``3d`` (GT targets). target_in_plane_error_mm: in-plane distance
+        of the slices' pancreas targets to their true positions.
         positions_mm: the estimate's final particle positions (N, 3), not written to JSON.
         total_wall_s, selection: filled by :func:`run_case` and the CLI.
     """
@@ -94,6 +96,8 @@ class RunResult:
     results: dict[str, Scores]
     registration: dict | None = None
     positions_mm: np.ndarray | None = field(default=None, repr=False)
+    drive: str = "pinned"
+    target_in_plane_error_mm: float = float("nan")
     total_wall_s: float | None = None
     selection: dict | None = None
 

@@ -34,6 +34,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
     slices = prep.resolve_slices(model, cfg.slices)
     tg = run_targets(prep, gt, model, gt_pos, slices, cfg)
     idx, targets = tg.idx, tg.targets_mm
+    axes = tg.axes(cfg.drive) if cfg.targets != "gt" else None
     pmask = model.organ_slice("pancreas")
     exclude_driven = cfg.exclude_driven if cfg.exclude_driven is not None else len(slices) > 1
     excl = np.zeros(model.n, dtype=bool)
@@ -58,8 +59,10 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
     results: dict[str, Scores] = {}
     if "initial" in cfg.baselines:
         results["initial"] = score(model.positions_mm)
-    if "propagate" in cfg.baselines:
-        results["propagate"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm))
+    if "propagate" in cfg.baselines:  # the first slice's motion, as the estimate gets it (per organ when organ-aware)
+        results["propagate"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0])))
+        if tg.organ_affines.get(slices[0]):
+            results["propagate_affine"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm))
     if "volume_registration" in cfg.baselines:
         pos, info = volume_registration(prep, gt, model)
         results["volume_registration"] = score(pos, **info)
@@ -74,7 +77,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
                                extra_points_mm=np.vstack([targets, gt_pos]), callback=on_step)
     progress.say(f"estimate: {len(idx):,} particles driven on {', '.join(str(prep.to_input(s)) for s in slices)}, "
                  f"cell {est.mpm.dx_mm:.2f} mm, grid {'x'.join(map(str, est.mpm.grid_shape))}")
-    res = est.estimate(targets)
+    res = est.estimate(targets, axes=axes)
     progress.done(f"estimate: {res.steps} steps in {res.wall_s:.1f} s ({res.reason})")
     m = evaluate(res.positions_mm[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step)
     results["estimate"] = EstimateScores(
@@ -87,7 +90,8 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         deformation=cfg.deformation, targets=cfg.targets, device=str(est.mpm.device), n_particles=model.counts(),
         n_driven=int(len(idx)), excluded_driven=bool(exclude_driven), solver=est.mpm.summary(), gains=res.gains.to_json(),
         gt={k: v for k, v in gt.params.items() if k not in ("A",)} | {"steps": gt.steps, "wall_s": gt.wall_s},
-        results=results, registration=tg.registration, positions_mm=res.positions_mm)
+        results=results, registration=tg.registration, positions_mm=res.positions_mm, drive=cfg.drive if cfg.targets != "gt" else "3d",
+        target_in_plane_error_mm=tg.in_plane_error_mm)
     recorder.log_result(res.positions_mm, res.steps, out.to_json(), format_table(out))
     return out
 

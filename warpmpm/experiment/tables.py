@@ -18,7 +18,7 @@ MULTI_NAMES = {"a": "axial only", "ac": "axial + coronal", "as": "axial + sagitt
 def format_table(out: RunResult) -> str:
     """The run's table: each baseline and the estimate with error, p95, Dice (and steps, time)."""
     rows = ["| method | error mm | off-slice error mm | p95 mm | Dice | steps | wall s |", "|---|---|---|---|---|---|---|"]
-    for name in ("initial", "propagate", "volume_registration", "estimate"):
+    for name in ("initial", "propagate", "propagate_affine", "volume_registration", "estimate"):
         r = out.results.get(name)
         if r is None:
             continue
@@ -32,7 +32,7 @@ def format_table(out: RunResult) -> str:
             label += f" (uncertain: two registrations disagree by {j['disagreement_mm']:.1f} mm)"
         rows.append(f"| {label} | {r.error_mm:.2f} | {r.error_offslice_mm:.2f} | {r.p95_mm:.2f} | {r.dice:.3f} | {steps} | {wall} |")
     head = (f"case {out.case}, organs {out.organs}, slices {','.join(out.slices)}, protocol {out.protocol}"
-            f" (deformation {out.deformation}), targets {out.targets}, device {out.device}, "
+            f" (deformation {out.deformation}), targets {out.targets} (drive {out.drive}), device {out.device}, "
             f"particles {sum(out.n_particles.values())} ({out.n_particles}), driven {out.n_driven}")
     est = out.estimate
     state = "converged" if est.converged else ("STALLED" if est.reason == "stalled" else "NOT converged")

@@ -1,22 +1,29 @@
 """A run's driving targets from its ground truth: the ``--targets`` kinds of :class:`CaseConfig`.
 
-- ``affine``: one in-plane affine per slice, as a registration would measure it: the paper's known
-  ``A`` for axial slices under the paper protocol, else the least-squares fit of the slice particles'
-  GT motion (:meth:`~warpmpm.slices.InPlaneAffine.fit`).
-- ``gt``: the slice particles' GT 3D positions (through-plane motion included; an upper bound).
-- ``registration``: register each planning slice with the slice captured from the GT-warped image.
+- ``affine``: one in-plane affine per slice, fitted to the slice particles' GT motion (the paper's known
+  ``A`` for axial slices under the paper protocol): what a perfect affine registration would measure.
+- ``gt``: the slice particles' GT 3D positions, through-plane motion included: an upper bound no 2D
+  image gives (always driven in 3D).
+- ``gt-inplane``: the GT motion projected on each slice's plane: the best any 2D registration can give.
+- ``registration``: register each planning slice with the slice captured from the GT-warped image, the
+  whole slice and then each organ's footprint on it (organ-aware; the default).
+- ``registration-affine``: the same with one affine per slice (the paper's).
+
+With ``drive="inplane"`` a slice drives only its in-plane components (the through-plane motion is left
+to the physics or to an orthogonal slice); ``"pinned"`` also holds the through-plane coordinate where
+the target puts it (the previous position, as the paper's targets do).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..groundtruth import GroundTruth, paper_affine
 from ..model import ParticleModel
 from ..slices import DrivingSlice, InPlaneAffine, driven_indices, in_plane_axes
-from ..targets import affine_targets, registration_targets, truth_targets
+from ..targets import DriveTargets, affine_drive_targets, in_plane_errors_mm, in_plane_truth_targets, registration_targets
 from .capture import planning_and_gt_volumes
 from .case import PreparedCase
 from .config import CaseConfig
@@ -24,18 +31,34 @@ from .config import CaseConfig
 
 @dataclass
 class RunTargets:
-    """Driven particle indices, their targets (mm), the slice motion used and the registration's report.
+    """What a run drives, the slice motion it used and the registration's report.
 
     Attributes:
-        idx: (n_driven,) sorted particle indices. targets_mm: (n_driven, 3).
-        affines: the in-plane motion of each slice (fitted, known or registered; what ``propagate`` applies).
-        registration: the registration's own error and time when ``targets="registration"``, else None.
+        drive: :class:`~warpmpm.targets.DriveTargets` (indices, targets, driven directions).
+        affines: the in-plane motion of each whole slice (fitted, known or registered).
+        organ_affines: per slice, each organ's own motion (organ-aware registration), else empty.
+        registration: the registration's own error and time for the registration kinds, else None.
+        in_plane_error_mm: mean in-plane distance of the targets of the slices' pancreas particles to their
+            true positions (0 for the GT kinds), for every kind.
     """
 
-    idx: np.ndarray
-    targets_mm: np.ndarray
+    drive: DriveTargets
     affines: list[InPlaneAffine]
+    organ_affines: dict = field(default_factory=dict)
     registration: dict | None = None
+    in_plane_error_mm: float = float("nan")
+
+    @property
+    def idx(self) -> np.ndarray:
+        return self.drive.idx
+
+    @property
+    def targets_mm(self) -> np.ndarray:
+        return self.drive.targets_mm
+
+    def axes(self, drive: str) -> np.ndarray | None:
+        """The driven directions for :meth:`~warpmpm.driving.SliceDrivenEstimator.estimate` (None: all three)."""
+        return self.drive.axes if drive == "inplane" else None
 
 
 def slice_affines(prep: PreparedCase, model: ParticleModel, gt_pos: np.ndarray, slices: list[DrivingSlice],
@@ -56,18 +79,22 @@ def slice_affines(prep: PreparedCase, model: ParticleModel, gt_pos: np.ndarray, 
 def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_pos: np.ndarray, slices: list[DrivingSlice],
                 cfg: CaseConfig) -> RunTargets:
     """The targets of ``cfg.targets`` for ``model`` driven from ``slices``."""
-    if cfg.targets == "affine":
+    x0 = model.positions_mm
+    if cfg.targets in ("affine", "gt", "gt-inplane"):
         affines = slice_affines(prep, model, gt_pos, slices, cfg)
-        idx, targets = affine_targets(model, model.positions_mm, slices, affines, prep.centre_mm)
-        return RunTargets(idx, targets, affines)
-    if cfg.targets == "gt":
-        idx, targets = truth_targets(model, slices, gt_pos)
-        return RunTargets(idx, targets, slice_affines(prep, model, gt_pos, slices, cfg))
+        if cfg.targets == "affine":
+            drive = affine_drive_targets(model, x0, slices, affines, prep.centre_mm)
+        else:
+            drive = in_plane_truth_targets(model, x0, slices, gt_pos)
+            if cfg.targets == "gt":  # the true 3D positions, driven in 3D
+                drive = DriveTargets(drive.idx, gt_pos[drive.idx], np.tile(np.eye(3), (len(drive.idx), 1, 1)))
+        err = in_plane_errors_mm(model, slices, drive.idx, drive.targets_mm, gt_pos)
+        return RunTargets(drive, affines, in_plane_error_mm=float(err.mean()) if err.size else float("nan"))
     case = prep.case
     planning, warped = planning_and_gt_volumes(case, gt)
     values = {o: case.label_map[o] for o in gt.model.organs}
-    idx, targets, info = registration_targets(model, slices, planning, warped, case.labels, case.geometry, values,
-                                              prep.centre_mm, truth_mm=gt_pos)
-    registered = info.pop("affines")
-    info.pop("slices")
-    return RunTargets(idx, targets, registered, info)
+    drive, info = registration_targets(model, slices, planning, warped, case.labels, case.geometry, values, prep.centre_mm,
+                                       truth_mm=gt_pos, organs=cfg.targets == "registration")
+    affines, organ_affines = info.pop("affines"), info.pop("organ_affines")
+    info["organ_affines"] = {str(prep.to_input(s)): {o: a.to_json() for o, a in d.items()} for s, d in organ_affines.items()}
+    return RunTargets(drive, affines, organ_affines, info, info.get("error_mm", float("nan")))
