@@ -41,14 +41,18 @@ def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: 
         print(f"task {a[:2]} failed: {msg}", file=sys.stderr)
         failed.append((a, msg))
 
+    def take(a, get) -> None:
+        """Hand on the result of task ``a`` (``get()`` returns it or raises its error)."""
+        try:
+            result = get()
+        except Exception as exc:  # noqa: BLE001 - one task's error must not lose the other tasks' rows
+            fail(a, exc)
+            return
+        on_result(result)
+
     if scheduler is None and workers <= 1:
         for a in args:
-            try:
-                result = fn(*a)
-            except Exception as exc:  # noqa: BLE001 - one task's error must not lose the other tasks' rows
-                fail(a, exc)
-                continue
-            on_result(result)
+            take(a, lambda: fn(*a))
     elif scheduler is None:
         import concurrent.futures as cf
         import multiprocessing as mp
@@ -58,12 +62,7 @@ def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: 
             futures = {ex.submit(fn, *a): a for a in args}
             try:
                 for fut in cf.as_completed(futures):
-                    try:
-                        result = fut.result()
-                    except Exception as exc:  # noqa: BLE001
-                        fail(futures[fut], exc)
-                        continue
-                    on_result(result)
+                    take(futures[fut], fut.result)
             except BaseException:
                 for fut in futures:
                     fut.cancel()
@@ -78,12 +77,7 @@ def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: 
         try:
             futures = {client.submit(fn, *a, pure=False): a for a in args}
             for fut in as_completed(list(futures)):
-                try:
-                    result = fut.result()
-                except Exception as exc:  # noqa: BLE001
-                    fail(futures[fut], exc)
-                    continue
-                on_result(result)
+                take(futures[fut], fut.result)
         finally:
             client.close()
             if cluster is not None:
