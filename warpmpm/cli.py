@@ -76,9 +76,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
                    "'auto:asc': psdl, that axial slice plus the best sagittal and/or coronal slice; default: mid-pancreas axial")
     p.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (under contact: the scenario number)")
-    p.add_argument("--targets", default="affine", choices=["affine", "gt", "gt-inplane", "registration", "registration-affine"],
+    p.add_argument("--targets", default="affine", choices=["affine", "gt", "gt-inplane", "registration", "registration-affine",
+                                                                 "registration-bspline"],
                    help="slice motion: fitted affine, GT 3D positions (upper bound), GT in-plane part (ceiling of 2D "
-                   "registration), organ-aware registration of captured slices, or one registered affine per slice")
+                   "registration), organ-aware registration of captured slices, one registered affine per slice, or a "
+                   "registered B-spline field")
     p.add_argument("--drive", default="pinned", choices=["inplane", "pinned"],
                    help="inplane: a slice drives only its in-plane components; pinned: the through-plane coordinate too")
     p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
@@ -113,7 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(phantom_resolution=2.0)
     s.add_argument("--organs", default="psdl", help="comma-separated combinations, or 'all'")
     s.add_argument("--orientations", default="axial")
-    s.add_argument("--targets", default="affine", choices=["affine", "gt", "gt-inplane", "registration", "registration-affine"])
+    s.add_argument("--targets", default="affine", choices=["affine", "gt", "gt-inplane", "registration", "registration-affine",
+                                                           "registration-bspline"])
     s.add_argument("--drive", default="pinned", choices=["inplane", "pinned"])
     s.add_argument("--exclude-driven", action="store_true",
                    help="leave the driven particles out of the metrics (the multi-direction rule; default: only with several slices)")

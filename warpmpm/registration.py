@@ -210,6 +210,102 @@ def slice_metric(stored: sitk.Image, captured: sitk.Image, mask: sitk.Image, aff
     return float(reg.MetricEvaluate(sitk.Cast(captured, sitk.sitkFloat32), sitk.Cast(stored, sitk.sitkFloat32)))
 
 
+def _bilinear(field: np.ndarray, origin: np.ndarray, spacing: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a (ny, nx, 2) field on a grid (origin, spacing in mm) at points ``uv`` (N, 2); clamped at the edges."""
+    f = (uv - origin) / spacing
+    ny, nx = field.shape[:2]
+    x = np.clip(f[:, 0], 0, nx - 1.000001)
+    y = np.clip(f[:, 1], 0, ny - 1.000001)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    ax, ay = (x - x0)[:, None], (y - y0)[:, None]
+    return ((1 - ax) * (1 - ay) * field[y0, x0] + ax * (1 - ay) * field[y0, x0 + 1]
+            + (1 - ax) * ay * field[y0 + 1, x0] + ax * ay * field[y0 + 1, x0 + 1])
+
+
+@dataclass
+class SliceField:
+    """A dense in-plane motion from a deformable 2D registration.
+
+    ``offset`` (ny, nx, 2) holds, on a grid of the captured slice (``origin_mm``, ``spacing_mm``), where each
+    captured point came from: ``stored = captured + offset``. :meth:`forward` inverts it for stored points.
+    Attributes also: ``affine`` (the whole slice's motion it started from), wall_s, min_jacobian (the smallest
+    Jacobian determinant of the motion over the organs: <= 0 folds), ok.
+    """
+
+    offset: np.ndarray
+    origin_mm: np.ndarray
+    spacing_mm: np.ndarray
+    affine: InPlaneAffine
+    wall_s: float
+    min_jacobian: float
+    ok: bool
+
+    def forward(self, uv: np.ndarray, iterations: int = 10) -> np.ndarray:
+        """Where stored in-plane points (N, 2, mm) are on the captured slice: solve ``q + offset(q) = p`` by
+        fixed-point iteration, starting from the whole slice's affine."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        q = uv @ self.affine.A.T + self.affine.t_mm
+        for _ in range(iterations):
+            q = uv - _bilinear(self.offset, self.origin_mm, self.spacing_mm, q)
+        return q
+
+
+def register_slice_bspline(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, mask: sitk.Image, *,
+                           mesh_mm: float = 25.0, iterations: int = 30, sampling: float = 0.5,
+                           crop_margin_mm: float = 20.0) -> SliceField:
+    """Deformable 2D registration: the whole slice's affine, then a cubic B-spline of control points every
+    ``mesh_mm`` on top of it (LBFGS-B, two resolutions, ``sampling`` of the pixels), the metric over ``mask``.
+    The motion's Jacobian determinant is checked over the mask: a folding field (<= 0.1) is returned with
+    ``ok=False``."""
+    whole = register_slices(stored, captured, centre_mm, mask=mask)
+    t0 = time.perf_counter()
+    jj, ii = np.nonzero(sitk.GetArrayViewFromImage(mask))
+    if len(ii) == 0:
+        raise InputError("the registration mask is empty: no organ of the planning contour on this slice")
+    sp = mask.GetSpacing()
+    mx, my = int(np.ceil(crop_margin_mm / sp[0])), int(np.ceil(crop_margin_mm / sp[1]))
+    lo = [max(0, int(ii.min()) - mx), max(0, int(jj.min()) - my)]
+    hi = [min(mask.GetSize()[0], int(ii.max()) + mx + 1), min(mask.GetSize()[1], int(jj.max()) + my + 1)]
+    size = [hi[0] - lo[0], hi[1] - lo[1]]
+    fixed = sitk.RegionOfInterest(sitk.Cast(captured, sitk.sitkFloat32), size, lo)
+    moving = sitk.RegionOfInterest(sitk.Cast(stored, sitk.sitkFloat32), size, lo)
+    m = sitk.RegionOfInterest(sitk.Cast(mask, sitk.sitkUInt8), size, lo)
+    inv = whole.affine.inverse()
+    aff = sitk.AffineTransform(2)
+    aff.SetMatrix(inv.A.ravel().tolist())
+    aff.SetTranslation(inv.t_mm.tolist())
+    extent = np.asarray(fixed.GetSize()) * np.asarray(fixed.GetSpacing())
+    bs = sitk.BSplineTransformInitializer(fixed, [max(1, int(round(e / mesh_mm))) for e in extent], order=3)
+    reg = sitk.ImageRegistrationMethod()
+    reg.SetMetricAsCorrelation()
+    reg.SetMetricMovingMask(m)
+    n_pix = fixed.GetNumberOfPixels()
+    sampling = min(1.0, max(sampling, 3000.0 / max(n_pix, 1)))
+    if sampling < 1:
+        reg.SetMetricSamplingStrategy(reg.RANDOM)
+        reg.SetMetricSamplingPercentage(sampling, 1)
+    reg.SetMovingInitialTransform(aff)
+    reg.SetInitialTransform(bs, inPlace=True)
+    reg.SetInterpolator(sitk.sitkLinear)
+    reg.SetOptimizerAsLBFGSB(gradientConvergenceTolerance=1e-5, numberOfIterations=iterations, maximumNumberOfCorrections=5)
+    reg.SetShrinkFactorsPerLevel([2, 1])
+    reg.SetSmoothingSigmasPerLevel([1, 0])
+    reg.Execute(fixed, moving)
+    composite = sitk.CompositeTransform([aff, bs])
+    dfield = sitk.TransformToDisplacementField(composite, sitk.sitkVectorFloat64, fixed.GetSize(), fixed.GetOrigin(),
+                                               fixed.GetSpacing(), fixed.GetDirection())
+    offset = sitk.GetArrayFromImage(dfield)  # (ny, nx, 2): stored - captured
+    origin, spacing = np.asarray(fixed.GetOrigin()), np.asarray(fixed.GetSpacing())
+    # Jacobian of captured -> stored over the mask (the forward motion folds where this does)
+    gy, gx = np.gradient(offset[..., 0], spacing[1], spacing[0]), np.gradient(offset[..., 1], spacing[1], spacing[0])
+    det = (1 + gy[1]) * (1 + gx[0]) - gy[0] * gx[1]
+    inside = sitk.GetArrayViewFromImage(m) > 0
+    min_jac = float(det[inside].min()) if inside.any() else 1.0
+    wall = whole.wall_s + time.perf_counter() - t0
+    ok = bool(whole.ok and np.isfinite(min_jac) and min_jac > 0.1 and np.all(np.isfinite(offset)))
+    return SliceField(offset, origin, spacing, whole.affine, wall, min_jac, ok)
+
+
 def slice_mask(labels: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray, label_values,
                dilate_mm: float = 6.0) -> sitk.Image:
     """Mask of the given labels on a slice, dilated by ``dilate_mm`` so organ edges are in."""

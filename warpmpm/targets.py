@@ -14,15 +14,16 @@ motion to the physics or to a second, orthogonal slice.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import SimpleITK as sitk
 
-from .errors import InputError
+from .errors import InputError, InputWarning
 from .images import Geometry
 from .model import ParticleModel
-from .registration import capture_slice, register_slice_organs, slice_mask
+from .registration import SliceField, capture_slice, register_slice_bspline, register_slice_organs, slice_mask
 from .slices import DrivingSlice, InPlaneAffine, driven_indices, extract_slice, in_plane_axes
 
 
@@ -136,6 +137,14 @@ def in_plane_errors_mm(model: ParticleModel, slices: list[DrivingSlice], idx: np
     return np.concatenate(errs) if errs else np.zeros(0)
 
 
+def field_motion(field: SliceField, positions_mm: np.ndarray, e_u: np.ndarray, e_v: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:
+    """Positions moved in the slice plane by a deformable slice motion (the coordinate along the normal unchanged)."""
+    d = np.asarray(positions_mm, dtype=np.float64) - centre_mm
+    uv = np.stack([d @ e_u, d @ e_v], axis=1)
+    delta = field.forward(uv) - uv
+    return positions_mm + delta[:, :1] * e_u[None, :] + delta[:, 1:] * e_v[None, :]
+
+
 #: Smallest footprint (pixels) of an organ on a slice for it to be registered on its own.
 MIN_ORGAN_PIXELS = 25
 
@@ -143,17 +152,20 @@ MIN_ORGAN_PIXELS = 25
 def registration_targets(model: ParticleModel, slices: list[DrivingSlice], planning_volume: np.ndarray,
                          captured_volume: np.ndarray, labels: np.ndarray, geometry: Geometry, label_values: dict[str, int],
                          centre_mm: np.ndarray, *, truth_mm: np.ndarray | None = None, noise_sd: float = 0.0,
-                         in_plane_factor: float = 1.0, organs: bool = True, positions_mm: np.ndarray | None = None,
+                         in_plane_factor: float = 1.0, method: str = "organs", positions_mm: np.ndarray | None = None,
                          ) -> tuple[DriveTargets, dict]:
     """Targets from registering each driving slice of ``planning_volume`` with the same slice of
     ``captured_volume`` (both (z, y, x) on ``geometry``); ``positions_mm`` is the state at t-1 (default: planning).
 
     The whole slice is registered with a 2D affine, the metric restricted to the model's organs on it
-    (``labels`` with ``label_values``, dilated): the paper's mode, ``organs=False``. With ``organs`` (the
-    default) each organ's footprint on the slice is then registered on its own, starting from the whole
-    slice's motion, and every particle takes its own organ's motion: organs on one slice may move apart
-    or slide along each other (one affine would follow the pushed neighbour and move the pancreas with
-    it). An organ with fewer than :data:`MIN_ORGAN_PIXELS` pixels on the slice takes the whole slice's.
+    (``labels`` with ``label_values``, dilated): the paper's mode, ``method="affine"``. With ``"organs"``
+    (the default) each organ's footprint on the slice is then registered on its own, starting from the
+    whole slice's motion, and every particle takes its own organ's motion: organs on one slice may move
+    apart or slide along each other (one affine would follow the pushed neighbour and move the pancreas
+    with it); an organ with fewer than :data:`MIN_ORGAN_PIXELS` pixels takes the whole slice's. With
+    ``"bspline"`` a cubic B-spline field on top of the affine gives every particle its own in-plane motion
+    (:func:`~warpmpm.registration.register_slice_bspline`); a slice whose field folds falls back to the
+    organ-aware registration, with a warning and the reason in ``info["fallbacks"]``.
 
     Returns ``(targets, info)``; ``info`` holds the whole-slice affines (``affines``, one per slice),
     each slice's organ affines (``organ_affines``: slice -> organ -> affine), the mean time per slice
@@ -161,27 +173,44 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
     the in-plane distance between the targets and the true positions of the slices' pancreas particles.
     """
     positions_mm = model.positions_mm if positions_mm is None else np.asarray(positions_mm, dtype=np.float64)
-    affines, organ_affines, walls = [], {}, []
+    if method not in ("organs", "affine", "bspline"):
+        raise InputError(f"unknown slice registration method {method!r}; use organs, affine or bspline")
+    affines, organ_affines, fields, walls, fallbacks = [], {}, {}, [], []
     for s in slices:
         stored = extract_slice(planning_volume, geometry, s.orientation, s.index, centre_mm)
         captured = capture_slice(captured_volume, geometry, s.orientation, s.index, centre_mm, noise_sd=noise_sd,
                                  in_plane_factor=in_plane_factor)
         mask = slice_mask(labels, geometry, s.orientation, s.index, centre_mm, [label_values[o] for o in model.organs])
+        extra = 0.0
+        if method == "bspline":
+            f = register_slice_bspline(stored, captured, centre_mm, mask)
+            if f.ok:
+                fields[s] = f
+                affines.append(f.affine)
+                organ_affines[s] = {}
+                walls.append(f.wall_s)
+                continue
+            extra = f.wall_s
+            fallbacks.append(f"{s}: the B-spline field folds (smallest Jacobian determinant {f.min_jacobian:.2f}); "
+                             "the organ-aware registration is used instead")
+            warnings.warn(f"registration of {s}: {fallbacks[-1].split(': ', 1)[1]}", InputWarning, stacklevel=2)
         own = {o: slice_mask(labels, geometry, s.orientation, s.index, centre_mm, [label_values[o]], dilate_mm=0.0)
-               for o in model.organs} if organs else {}
+               for o in model.organs} if method in ("organs", "bspline") else {}
         whole, per_organ = register_slice_organs(stored, captured, centre_mm, mask, own, MIN_ORGAN_PIXELS)
         if not whole.ok:
             raise InputError(f"registration of {s.orientation} slice {s.index} gave a degenerate transform ({whole.stop}); "
                              "targets would be nonsense")
         affines.append(whole.affine)
         organ_affines[s] = {o: r.affine for o, r in per_organ.items()}
-        walls.append(whole.wall_s + sum(r.wall_s for r in per_organ.values()))
+        walls.append(extra + whole.wall_s + sum(r.wall_s for r in per_organ.values()))
 
     whole = dict(zip(slices, affines))
     organ_of = np.asarray(model.organs)[model.organ_index]
 
     def moved(s, idx):
         e_u, e_v = in_plane_axes(model, s.orientation)
+        if s in fields:
+            return field_motion(fields[s], positions_mm[idx], e_u, e_v, centre_mm)
         out = whole[s].apply(positions_mm[idx], e_u, e_v, centre_mm)
         for organ, aff in organ_affines[s].items():
             sel = organ_of[idx] == organ
@@ -189,7 +218,8 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
         return out
 
     targets = slice_targets(model, positions_mm, slices, moved)
-    info: dict = {"wall_s": float(np.mean(walls)), "affines": affines, "organ_affines": organ_affines, "organs": bool(organs)}
+    info: dict = {"wall_s": float(np.mean(walls)), "affines": affines, "organ_affines": organ_affines, "fields": fields,
+                  "method": method, "fallbacks": fallbacks}
     if truth_mm is not None:
         err = in_plane_errors_mm(model, slices, targets.idx, targets.targets_mm, truth_mm)
         info["error_mm"] = float(err.mean()) if err.size else float("nan")

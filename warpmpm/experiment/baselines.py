@@ -18,16 +18,19 @@ from ..groundtruth import GroundTruth
 from ..model import ParticleModel
 from ..registration import register_volumes_affine
 from ..slices import DrivingSlice, InPlaneAffine, in_plane_axes
+from ..targets import field_motion
 from .capture import planning_and_gt_volumes
 from .case import PreparedCase
 
 
 def propagate(model: ParticleModel, s: DrivingSlice, affine: InPlaneAffine, centre_mm: np.ndarray,
-              organ_affines: dict | None = None) -> np.ndarray:
+              organ_affines: dict | None = None, field=None) -> np.ndarray:
     """Every particle moved by the slice's in-plane motion (mm), extruded along the slice normal; with
     ``organ_affines`` (organ-aware registration) each organ's particles take their organ's motion on the
     slice, the organs absent from it the whole slice's: the same information the estimate is driven with."""
     e_u, e_v = in_plane_axes(model, s.orientation)
+    if field is not None:  # a deformable slice motion: every particle takes the motion of its point of the slice
+        return field_motion(field, model.positions_mm, e_u, e_v, centre_mm)
     out = affine.apply(model.positions_mm, e_u, e_v, centre_mm)
     for organ, aff in (organ_affines or {}).items():
         sel = model.organ_slice(organ)

@@ -19,7 +19,7 @@ from ..slices import parse_slices
 from ..solver import SolverConfig
 
 Protocol = Literal["paper", "contact"]
-TargetKind = Literal["affine", "gt", "gt-inplane", "registration", "registration-affine"]
+TargetKind = Literal["affine", "gt", "gt-inplane", "registration", "registration-affine", "registration-bspline"]
 DriveMode = Literal["inplane", "pinned"]
 Lattice = Literal["auto", "voxel", "isotropic"]
 Baseline = Literal["initial", "propagate", "volume_registration"]
