@@ -26,7 +26,7 @@ from warpmpm.experiment.tasks import run_tasks  # noqa: E402
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
 KINDS = [("gt", "pinned"), ("gt-inplane", "inplane"), ("gt-inplane", "pinned"), ("affine", "inplane"), ("affine", "pinned"),
          ("registration", "inplane"), ("registration", "pinned"), ("registration-affine", "inplane"),
-         ("registration-affine", "pinned")]
+         ("registration-affine", "pinned"), ("registration-bspline", "inplane"), ("registration-bspline", "pinned")]
 
 
 def mid_slices(prep, condition):
@@ -49,7 +49,7 @@ def task(name, deformation, protocol, conditions, kinds):
         slices = mid_slices(prep, cond)
         for n, (kind, drive) in enumerate(kinds):
             c = replace(cfg, slices=slices, targets=kind, drive=drive, exclude_driven=True,
-                        baselines=cfg.baselines if n == 0 or kind.startswith("registration") else ("propagate",))
+                        baselines=cfg.baselines if n == 0 else ("propagate",))
             out = run_prepared(prep, gt, c)
             r = {k: v.to_json() for k, v in out.results.items()}
             rows.append({"case": name, "deformation": deformation, "condition": cond, "slices": slices, "targets": kind, "drive": drive,
@@ -93,6 +93,7 @@ def main(argv=None):
     p.add_argument("--conditions", default="a,sc")
     p.add_argument("--kinds", default=None, help="comma-separated target:drive pairs (default: all)")
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--name", default=None, help="raw results file name (default slice_motion_<protocol>)")
     a = p.parse_args(argv)
     cases = [c for c in a.cases.split(",") if os.path.exists(os.path.join(DATA, c, "labels.nii.gz"))]
     for c in set(a.cases.split(",")) - set(cases):
@@ -109,7 +110,7 @@ def main(argv=None):
     failed = run_tasks(task, args, keep, workers=a.workers)
     for cond in a.conditions.split(","):
         print("\n" + table(rows, cond))
-    raw.save(f"slice_motion_{a.protocol}", {"rows": rows, "failed": [str(f) for f in failed]})
+    raw.save(a.name or f"slice_motion_{a.protocol}", {"rows": rows, "failed": [str(f) for f in failed]})
 
 
 if __name__ == "__main__":
