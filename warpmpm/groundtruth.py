@@ -158,6 +158,9 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
     params["gt_steps"] = res.steps
     params["gt_converged"] = res.converged
     params["gt_rms_residual_mm"] = res.final_rms_mm
+    params["gt_settled"] = res.settled
+    params["gt_body_motion_mm"] = res.body_motion_mm
+    params["gt_reason"] = res.reason
     return params, res
 
 
