@@ -252,7 +252,7 @@ def pid_force(
     e = P * (target[j] - x[p])
     acc_i = integral[j] + e * dt
     integral[j] = acc_i
-    a = bias[j] + kp * e - kd * (P * v[p]) + ki * acc_i
+    a = P * (bias[j] + kp * e - kd * v[p] + ki * acc_i)  # nothing along the directions this frame does not drive
     n = wp.length(a)
     if n > max_accel:
         a = a * (max_accel / n)
