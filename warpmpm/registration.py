@@ -47,6 +47,21 @@ def capture_slice(warped_volume: np.ndarray, geometry: Geometry, orientation: st
     return img
 
 
+def crop_to_mask(fixed: sitk.Image, moving: sitk.Image, mask: sitk.Image, margin_mm: float):
+    """The two slices and the mask cut to the mask's bounding box plus ``margin_mm`` for the motion: far fewer
+    pixels, the same physical coordinates (RegionOfInterest keeps the origin of the kept region)."""
+    jj, ii = np.nonzero(sitk.GetArrayViewFromImage(mask))
+    if len(ii) == 0:
+        raise InputError("the registration mask is empty: no organ of the planning contour on this slice")
+    sp = mask.GetSpacing()
+    mx, my = int(np.ceil(margin_mm / sp[0])), int(np.ceil(margin_mm / sp[1]))
+    lo = [max(0, int(ii.min()) - mx), max(0, int(jj.min()) - my)]
+    hi = [min(mask.GetSize()[0], int(ii.max()) + mx + 1), min(mask.GetSize()[1], int(jj.max()) + my + 1)]
+    size = [hi[0] - lo[0], hi[1] - lo[1]]
+    return (sitk.RegionOfInterest(fixed, size, lo), sitk.RegionOfInterest(moving, size, lo),
+            sitk.RegionOfInterest(sitk.Cast(mask, sitk.sitkUInt8), size, lo))
+
+
 @dataclass
 class SliceRegistration:
     """Result of a 2D registration: ``x_t = A (x_{t-1} - c) + c + t`` with c the driving centre.
@@ -92,20 +107,7 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
     fixed = sitk.Cast(captured, sitk.sitkFloat32)
     moving = sitk.Cast(stored, sitk.sitkFloat32)
     if mask is not None:
-        # Work on the organs' bounding box plus a margin for the motion: far fewer pixels, same
-        # physical coordinates (RegionOfInterest keeps the origin of the kept region).
-        arr = sitk.GetArrayViewFromImage(mask)
-        jj, ii = np.nonzero(arr)
-        if len(ii) == 0:
-            raise InputError("the registration mask is empty: no organ of the planning contour on this slice")
-        sp = mask.GetSpacing()
-        mx, my = int(np.ceil(crop_margin_mm / sp[0])), int(np.ceil(crop_margin_mm / sp[1]))
-        lo = [max(0, int(ii.min()) - mx), max(0, int(jj.min()) - my)]
-        hi = [min(mask.GetSize()[0], int(ii.max()) + mx + 1), min(mask.GetSize()[1], int(jj.max()) + my + 1)]
-        size = [hi[0] - lo[0], hi[1] - lo[1]]
-        fixed = sitk.RegionOfInterest(fixed, size, lo)
-        moving = sitk.RegionOfInterest(moving, size, lo)
-        mask = sitk.RegionOfInterest(sitk.Cast(mask, sitk.sitkUInt8), size, lo)
+        fixed, moving, mask = crop_to_mask(fixed, moving, mask, crop_margin_mm)
     reg = sitk.ImageRegistrationMethod()
     if metric == "correlation":
         reg.SetMetricAsCorrelation()
@@ -259,17 +261,8 @@ def register_slice_bspline(stored: sitk.Image, captured: sitk.Image, centre_mm: 
     ``ok=False``."""
     whole = register_slices(stored, captured, centre_mm, mask=mask)
     t0 = time.perf_counter()
-    jj, ii = np.nonzero(sitk.GetArrayViewFromImage(mask))
-    if len(ii) == 0:
-        raise InputError("the registration mask is empty: no organ of the planning contour on this slice")
-    sp = mask.GetSpacing()
-    mx, my = int(np.ceil(crop_margin_mm / sp[0])), int(np.ceil(crop_margin_mm / sp[1]))
-    lo = [max(0, int(ii.min()) - mx), max(0, int(jj.min()) - my)]
-    hi = [min(mask.GetSize()[0], int(ii.max()) + mx + 1), min(mask.GetSize()[1], int(jj.max()) + my + 1)]
-    size = [hi[0] - lo[0], hi[1] - lo[1]]
-    fixed = sitk.RegionOfInterest(sitk.Cast(captured, sitk.sitkFloat32), size, lo)
-    moving = sitk.RegionOfInterest(sitk.Cast(stored, sitk.sitkFloat32), size, lo)
-    m = sitk.RegionOfInterest(sitk.Cast(mask, sitk.sitkUInt8), size, lo)
+    fixed, moving, m = crop_to_mask(sitk.Cast(captured, sitk.sitkFloat32), sitk.Cast(stored, sitk.sitkFloat32), mask,
+                                    crop_margin_mm)
     inv = whole.affine.inverse()
     aff = sitk.AffineTransform(2)
     aff.SetMatrix(inv.A.ravel().tolist())
