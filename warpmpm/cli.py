@@ -1,4 +1,4 @@
-"""The ``warpmpm`` command: ``run | sweep | multi | train | view``.
+"""The ``warpmpm`` command: ``run | sweep | multi | train | view | track | make-cine | evaluate-track``.
 
     warpmpm run                                  # a whole case on the built-in phantom (= examples/run_case.py)
     warpmpm run --labels L.nii.gz --image I.nii.gz --preset totalseg_mr --json out.json --rrd out.rrd
@@ -6,6 +6,9 @@
     warpmpm multi --phantom-seeds 0,1 --out runs/multi.csv
     warpmpm train runs/sweep.csv --out runs/selection_error.json
     warpmpm view out.rrd [--summary | --screenshot out.png]
+    warpmpm make-cine --out runs/cine --frames 8                  # a synthetic series with its truth
+    warpmpm track --image I --labels L --cine runs/cine/cine --out runs/track
+    warpmpm evaluate-track --track runs/track --truth runs/cine/truth
 
 Exit codes: 0 success; 1 some sweep tasks failed (their rows are missing; re-run to retry); 2 bad
 input (one ``error:`` line naming it, nothing written); 3 the simulation failed; 130 interrupted
@@ -143,6 +146,40 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--splits", default="case,row", help="which splits to tune and report; the model saved is the first")
     t.add_argument("--out", default="selection_model.json")
     t.add_argument("--report", default=None, help="write the report as JSON here")
+
+    k = sub.add_parser("track", parents=[device()], help="track a cine series: 2D frames in, 3D organ motion out",
+                       description="Track a cine series (a folder of 2D NIfTI/MHA/DICOM frames placed in 3D) from a planning "
+                       "image and its organ labels: per frame the estimated label map, optionally the displacement field, "
+                       "and a row of track.csv in --out.")
+    k.add_argument("--image", required=True, help="planning image")
+    k.add_argument("--labels", required=True, help="organ label map on the planning image's grid")
+    k.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"])
+    k.add_argument("--cine", required=True, help="folder of cine frames")
+    k.add_argument("--out", required=True, help="output folder (created)")
+    k.add_argument("--organs", default="psdl")
+    k.add_argument("--particle-step", type=int, default=1)
+    k.add_argument("--max-steps", type=int, default=3000, help="steps per frame before it is reported not converged")
+    k.add_argument("--displacement", action="store_true", help="also write each frame's 3D displacement field")
+
+    c = sub.add_parser("make-cine", help="a synthetic cine series with its 3D truth (for tests and benchmarks)",
+                       description="Breathing plus a contact push, each frame's truth simulated with perturbed materials, frames "
+                       "on sagittal (and coronal) planes through the pancreas; --out/cine the frames, --out/truth the truth.")
+    c.add_argument("--image", default=None, help="planning image (default: the built-in phantom)")
+    c.add_argument("--labels", default=None)
+    c.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"])
+    c.add_argument("--phantom-resolution", type=float, default=2.0)
+    c.add_argument("--plane", default="sagittal", help="sagittal, coronal, or sagittal,coronal (interleaved)")
+    c.add_argument("--frames", type=int, default=8)
+    c.add_argument("--fps", type=float, default=4.0)
+    c.add_argument("--thickness-mm", type=float, default=6.0)
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--particle-step", type=int, default=1)
+    c.add_argument("--out", required=True)
+
+    e = sub.add_parser("evaluate-track", help="score a track against a synthetic series' truth")
+    e.add_argument("--track", required=True)
+    e.add_argument("--truth", required=True)
+    e.add_argument("--json", default=None)
 
     v = sub.add_parser("view", help="open, summarise or picture a Rerun recording")
     v.add_argument("rrd")
@@ -320,7 +357,76 @@ def cmd_view(a) -> int:
     return view_main(argv)
 
 
-COMMANDS = {"run": cmd_run, "sweep": cmd_sweep, "multi": cmd_multi, "train": cmd_train, "view": cmd_view}
+def _planning_case(image, labels, preset):
+    from .images import load_case
+
+    if labels is None or image is None:
+        raise InputError("--image and --labels are both needed (the planning image and its organ labels)")
+    return load_case(labels, image, preset)
+
+
+def cmd_track(a) -> int:
+    from .cine import read_cine
+    from .solver import SolverConfig
+    from .tracker import Tracker, TrackerConfig
+
+    case = _planning_case(a.image, a.labels, a.preset)
+    frames = read_cine(a.cine)
+    parent = os.path.dirname(os.path.abspath(a.out))
+    if not os.path.isdir(parent):
+        raise InputError(f"output folder {parent} for --out does not exist")
+    cfg = TrackerConfig(organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
+                        solver=SolverConfig(device=a.device))
+    tracker = Tracker(case, frames, cfg)
+    print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
+          f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes", file=sys.stderr)
+    rows = tracker.run(a.out, progress=lambda t: print(t, flush=True))
+    import numpy as np
+
+    lat = np.array([r["latency_s"] for r in rows[1:]] or [rows[0]["latency_s"]])
+    print(f"latency per frame after the first: median {np.median(lat):.2f} s, p95 {np.percentile(lat, 95):.2f} s; wrote {a.out}")
+    return 0
+
+
+def cmd_make_cine(a) -> int:
+    from .experiment.cine_series import make_cine
+    from .phantom import make_phantom
+
+    if a.labels is None:  # the phantom: its planning image and labels go beside the series, for `warpmpm track`
+        from .images import write_case
+
+        os.makedirs(os.path.join(a.out, "planning"), exist_ok=True)
+        paths = os.path.join(a.out, "planning", "labels.nii.gz"), os.path.join(a.out, "planning", "image.nii.gz")
+        write_case(make_phantom(resolution=a.phantom_resolution), *paths)
+        case = _planning_case(paths[1], paths[0], "amos")  # as the tracker will read it (float32 geometry)
+    else:
+        case = _planning_case(a.image, a.labels, a.preset)
+    planes = tuple(p.strip() for p in a.plane.split(",") if p.strip())
+    for p in planes:
+        if p not in ("sagittal", "coronal", "axial"):
+            raise InputError(f"unknown plane {p!r}; use sagittal, coronal or axial")
+    make_cine(case, a.out, planes=planes, frames=a.frames, fps=a.fps, thickness_mm=a.thickness_mm, seed=a.seed,
+              particle_step=a.particle_step, progress=lambda t: print(t, flush=True))
+    print(f"wrote {a.out}/cine and {a.out}/truth")
+    return 0
+
+
+def cmd_evaluate_track(a) -> int:
+    from .experiment.cine_series import evaluate_track
+    from .experiment.io import write_json_atomic
+
+    ev = evaluate_track(a.track, a.truth)
+    print("| method | error mm | p95 mm | Dice | centroid error mm |\n|---|---|---|---|---|")
+    for name, r in ev["results"].items():
+        print(f"| {name} | {r['error_mm']:.2f} | {r['p95_mm']:.2f} | {r['dice']:.3f} | {r['centroid_error_mm']:.2f} |")
+    print(f"latency: median {ev['latency_s']['median']:.2f} s, p95 {ev['latency_s']['p95']:.2f} s")
+    if a.json:
+        write_json_atomic(a.json, ev)
+    return 0
+
+
+COMMANDS = {"run": cmd_run, "sweep": cmd_sweep, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
+            "make-cine": cmd_make_cine, "evaluate-track": cmd_evaluate_track}
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,16 @@
+"""`warpmpm evaluate-track` as a script (see `python examples/evaluate_track.py --help`).
+
+    python examples/make_cine.py --out runs/cine --frames 8
+    python examples/track.py --image PLAN --labels LABELS --preset P --cine runs/cine/cine --out runs/track
+    python examples/evaluate_track.py --track runs/track --truth runs/cine/truth --json eval.json
+"""
+
+import os
+import sys
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from warpmpm.cli import main  # noqa: E402
+
+if __name__ == "__main__":
+    raise SystemExit(main(["evaluate-track", *sys.argv[1:]]))

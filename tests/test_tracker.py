@@ -1,0 +1,99 @@
+"""Issue 15 (in part): the cine tracker on a tiny phantom, from a synthetic series, NIfTI frames."""
+
+import os
+import shutil
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from warpmpm.cine import read_cine
+from warpmpm.cli import main
+from warpmpm.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def series(tmp_path_factory):
+    out = str(tmp_path_factory.mktemp("cine"))
+    assert main(["make-cine", "--phantom-resolution", "3", "--frames", "3", "--plane", "sagittal,coronal", "--out", out]) == 0
+    return out
+
+
+def test_interleaved_planes_are_grouped_in_acquisition_order(series):
+    frames = read_cine(os.path.join(series, "cine"))
+    assert [f.plane for f in frames] == [0, 1, 0]
+    assert np.allclose(np.abs(frames[0].normal), [1, 0, 0]) and np.allclose(np.abs(frames[1].normal), [0, 1, 0])
+    assert frames[0].thickness_mm == pytest.approx(6.0)
+
+
+def test_track_without_the_truth_and_evaluate_against_it(series, tmp_path, capsys):
+    truth = os.path.join(series, "truth")
+    hidden = str(tmp_path / "truth_elsewhere")
+    shutil.move(truth, hidden)  # the tracker never reads the truth
+    try:
+        out = str(tmp_path / "track")
+        code = main(["track", "--image", os.path.join(series, "planning", "image.nii.gz"), "--labels",
+                     os.path.join(series, "planning", "labels.nii.gz"), "--cine", os.path.join(series, "cine"), "--out", out,
+                     "--device", "cpu", "--displacement", "--max-steps", "1500"])
+    finally:
+        shutil.move(hidden, truth)
+    assert code == 0
+    planning = sitk.ReadImage(os.path.join(series, "planning", "labels.nii.gz"))
+    for k in range(3):  # label maps and displacement fields read back on the planning grid
+        lab = sitk.ReadImage(os.path.join(out, "labels", f"frame_{k:04d}.nii.gz"))
+        assert lab.GetSize() == planning.GetSize() and np.allclose(lab.GetOrigin(), planning.GetOrigin())
+        assert set(np.unique(sitk.GetArrayFromImage(lab))) <= set(np.unique(sitk.GetArrayFromImage(planning)))
+        disp = sitk.ReadImage(os.path.join(out, "displacement", f"frame_{k:04d}.nii.gz"))
+        assert disp.GetNumberOfComponentsPerPixel() == 3 and disp.GetSize() == planning.GetSize()
+    import csv
+
+    rows = list(csv.DictReader(open(os.path.join(out, "track.csv"))))
+    assert [r["plane"] for r in rows] == ["0", "1", "0"] and all(float(r["steps"]) > 0 for r in rows)
+    assert main(["evaluate-track", "--track", out, "--truth", truth, "--json", str(tmp_path / "e.json")]) == 0
+    import json
+
+    ev = json.load(open(tmp_path / "e.json"))
+    for m in ("estimate", "propagate", "initial"):
+        assert {"error_mm", "p95_mm", "dice"} <= set(ev["results"][m])
+    assert len(ev["frames"]) == 3
+    assert ev["results"]["estimate"]["error_mm"] < ev["results"]["initial"]["error_mm"] + 0.5
+
+
+def test_a_frame_equal_to_the_planning_slice_gives_no_motion(tmp_path, tiny_case):
+    from warpmpm.cine import read_cine
+    from warpmpm.images import write_case
+    from warpmpm.solver import SolverConfig
+    from warpmpm.tracker import Tracker, TrackerConfig
+
+    g = tiny_case.geometry
+    pan = np.nonzero(tiny_case.organ_mask("pancreas"))
+    i = int(np.median(pan[2]))
+    frame = tiny_case.intensity_image()[i:i + 1, :, :]  # the planning's own sagittal slice, one voxel thick
+    os.makedirs(tmp_path / "cine")
+    sitk.WriteImage(frame, str(tmp_path / "cine" / "f0.nii.gz"))
+    tr = Tracker(tiny_case, read_cine(str(tmp_path / "cine")), TrackerConfig(solver=SolverConfig(device="cpu"), max_steps=800))
+    rows = tr.run(str(tmp_path / "out"))
+    assert float(rows[0]["pancreas_shift_mm"]) < 0.3
+    del g
+
+
+def test_bad_cine_folders_are_named(tmp_path, tiny_case):
+    with pytest.raises(InputError, match="no cine frames"):
+        read_cine(str(tmp_path))
+    img = tiny_case.intensity_image()
+    sitk.WriteImage(img[10:11, :, :], str(tmp_path / "a.nii.gz"))
+    sitk.WriteImage(img[10:11, :30, :], str(tmp_path / "b.nii.gz"))
+    with pytest.raises(InputError, match="b.nii.gz .* other frames of its plane"):
+        read_cine(str(tmp_path))
+    os.remove(tmp_path / "b.nii.gz")
+    sitk.WriteImage(img[:, :, :2], str(tmp_path / "b.nii.gz"))
+    with pytest.raises(InputError, match="b.nii.gz is .* one voxel thick"):
+        read_cine(str(tmp_path))
+    os.remove(tmp_path / "b.nii.gz")
+    from warpmpm.solver import SolverConfig
+    from warpmpm.tracker import Tracker, TrackerConfig
+
+    os.remove(tmp_path / "a.nii.gz")
+    sitk.WriteImage(img[0:1, :, :], str(tmp_path / "edge.nii.gz"))  # the first sagittal slice: no organ there
+    with pytest.raises(InputError, match="edge.nii.gz: its plane does not cross"):
+        Tracker(tiny_case, read_cine(str(tmp_path)), TrackerConfig(solver=SolverConfig(device="cpu")))

@@ -1,0 +1,158 @@
+"""A synthetic but scanner-like cine series with its 3D truth, and the evaluation of a track against it.
+
+:func:`make_cine` moves the organs of a planning case as breathing does (superior-inferior and
+anterior-posterior, a different amplitude per organ and per cycle) with a slow aperiodic push of the
+duodenum (or stomach) toward the pancreas; the pancreas itself is not driven, it moves through contact.
+Each frame's truth is simulated from the planning state with perturbed materials (as the GT protocols
+do); the frame is that state's image (the planning image warped by the truth) on a sagittal and/or
+coronal plane through the pancreas, averaged over the slice thickness (partial volume), with noise,
+written one voxel thick in its 3D geometry (NIfTI). The truth goes to ``truth/``, the frames to
+``cine/``; the tracker never reads ``truth/``.
+
+:func:`evaluate_track` scores a tracker's output against that truth beside ``initial`` (no motion) and
+``propagate`` (each frame's slice motion copied to every particle).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import numpy as np
+import SimpleITK as sitk
+
+from ..errors import InputError
+from ..groundtruth import perturb_materials, simulate_gt, warp_image
+from ..images import ORGANS, Case
+from ..metrics import dice, voxelize
+from ..model import build_model
+from ..slices import orientation_image_axis
+
+#: Breathing amplitudes (mm): superior-inferior, anterior-posterior, per organ.
+BREATHING_MM = {"pancreas": (10.0, 3.0), "stomach": (12.0, 4.0), "duodenum": (10.0, 3.0), "left_kidney": (14.0, 3.0)}
+
+
+def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8, fps: float = 4.0, period_s: float = 4.0,
+              thickness_mm: float = 6.0, noise_sd: float = 0.02, push_mm: float = 4.0, particle_step: int = 1, seed: int = 0,
+              progress=None) -> dict:
+    """Write ``out_dir/cine`` (frames) and ``out_dir/truth`` (positions, label maps) for ``case``; returns the
+    series' parameters (also in ``truth/series.json``). Frames cycle through ``planes``."""
+    if case.image is None:
+        raise InputError("a synthetic cine series needs the planning image")
+    if frames < 1 or fps <= 0 or period_s <= 0 or thickness_mm <= 0:
+        raise InputError("frames must be >= 1, fps, period and thickness > 0")
+    present = tuple(o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o]))
+    model = build_model(case, present, sampling_step=particle_step)
+    neighbours = [o for o in present if o != "pancreas"]
+    if not neighbours:
+        raise InputError("a synthetic cine series needs a neighbour of the pancreas to drive (stomach, duodenum or left kidney)")
+    rng = np.random.default_rng(seed)
+    cycles = int(math.ceil(frames / fps / period_s)) + 1
+    cycle_amp = rng.uniform(0.7, 1.3, cycles)
+    pusher = "duodenum" if "duodenum" in present else neighbours[0]
+    pan_c = model.positions_mm[model.organ_slice("pancreas")].mean(0)
+    push_dir = pan_c - model.positions_mm[model.organ_slice(pusher)].mean(0)
+    push_dir /= max(np.linalg.norm(push_dir), 1e-9)
+    g = case.geometry
+    cine, truth = os.path.join(out_dir, "cine"), os.path.join(out_dir, "truth")
+    os.makedirs(cine, exist_ok=True)
+    os.makedirs(os.path.join(truth, "labels"), exist_ok=True)
+    driven = np.nonzero(model.organ_index != model.organs.index("pancreas"))[0]
+    all_truth = []
+    for k in range(frames):
+        t = k / fps
+        phase = (1.0 - math.cos(2 * math.pi * t / period_s)) / 2.0
+        amp = cycle_amp[int(t // period_s)]
+        target = model.positions_mm.copy()
+        for o in neighbours:
+            si, ap = BREATHING_MM[o]
+            sel = model.organ_slice(o)
+            target[sel] += amp * phase * np.array([0.0, ap, -si])  # exhale to inhale: inferior and anterior (LPS)
+        target[model.organ_slice(pusher)] += push_mm * (k / max(frames - 1, 1)) * push_dir
+        _, res = simulate_gt(model, driven, target[driven], perturb=True, seed=seed + 7, solver_config=None, device="cpu")
+        pos = res.positions_mm
+        all_truth.append(pos)
+        warped = warp_image(case, model, pos)
+        orientation = planes[k % len(planes)]
+        frame = _frame_image(warped, case, orientation, pan_c, thickness_mm, noise_sd * float(np.ptp(case.image)), rng)
+        sitk.WriteImage(frame, os.path.join(cine, f"frame_{k:04d}_{orientation}.nii.gz"))
+        from ..groundtruth import particle_label_map
+
+        lab = particle_label_map(model, pos, {o: case.label_map[o] for o in model.organs})
+        sitk.WriteImage(g.apply_to(sitk.GetImageFromArray(lab.astype(np.uint8))), os.path.join(truth, "labels", f"frame_{k:04d}.nii.gz"))
+        if progress:
+            progress(f"frame {k} ({orientation}, t {t:.2f} s): truth in {res.steps} steps, pancreas moved "
+                     f"{np.linalg.norm(pos[model.organ_slice('pancreas')].mean(0) - pan_c):.2f} mm")
+    np.savez_compressed(os.path.join(truth, "positions.npz"), planning_mm=model.positions_mm, organ_index=model.organ_index,
+                        organs=np.asarray(model.organs), truth_mm=np.asarray(all_truth))
+    params = {"frames": frames, "fps": fps, "period_s": period_s, "planes": list(planes), "thickness_mm": thickness_mm,
+              "noise_sd": noise_sd, "push_mm": push_mm, "pusher": pusher, "particle_step": particle_step, "seed": seed,
+              "breathing_mm": BREATHING_MM, "cycle_amplitude": cycle_amp.tolist(), "materials": {
+                  o: {"lam_pa": m.lam_pa, "mu_pa": m.mu_pa} for o, m in perturb_materials(model.materials, seed + 7).items()}}
+    with open(os.path.join(truth, "series.json"), "w") as f:
+        json.dump(params, f, indent=1)
+    return params
+
+
+def _frame_image(volume: np.ndarray, case: Case, orientation: str, through_mm: np.ndarray, thickness_mm: float, noise: float,
+                 rng) -> sitk.Image:
+    """The plane of ``orientation`` through ``through_mm``, averaged over ``thickness_mm``, one voxel thick."""
+    g = case.geometry
+    a = orientation_image_axis(g, orientation)
+    k = int(np.rint(g.world_to_index(through_mm[None, :])[0][a]))
+    half = max(0, int(round(thickness_mm / g.spacing_mm[a] / 2 - 0.5)))
+    lo, hi = max(0, k - half), min(g.size[a], k + half + 1)
+    np_axis = 2 - a
+    sl = [slice(None)] * 3
+    sl[np_axis] = slice(lo, hi)
+    plane = volume[tuple(sl)].mean(axis=np_axis, keepdims=True).astype(np.float32)
+    plane += rng.normal(0.0, noise, plane.shape).astype(np.float32)
+    start = [0, 0, 0]
+    start[a] = (lo + hi - 1) / 2.0
+    origin = g.index_to_world(np.asarray(start, dtype=np.float64)[None, :])[0]
+    spacing = list(g.spacing_mm)
+    spacing[a] = float(thickness_mm)
+    img = sitk.GetImageFromArray(plane)
+    img.SetOrigin(tuple(float(v) for v in origin))
+    img.SetSpacing(tuple(spacing))
+    img.SetDirection(g.direction)
+    return img
+
+
+def evaluate_track(track_dir: str, truth_dir: str) -> dict:
+    """Per frame and overall: pancreas error (mean, p95, mm), Dice and centroid error of the estimate and of
+    ``propagate`` and ``initial``; latency median and p95 (s)."""
+    import csv
+
+    for p in (os.path.join(track_dir, "particles.npz"), os.path.join(truth_dir, "positions.npz")):
+        if not os.path.exists(p):
+            raise InputError(f"{p} not found")
+    tr = np.load(os.path.join(track_dir, "particles.npz"))
+    gt = np.load(os.path.join(truth_dir, "positions.npz"))
+    if tr["planning_mm"].shape != gt["planning_mm"].shape or not np.allclose(tr["planning_mm"], gt["planning_mm"], rtol=0, atol=0.01):
+        raise InputError("the track and the truth were built on different particle models (organs or particle step differ)")
+    n = min(len(tr["estimate_mm"]), len(gt["truth_mm"]))
+    pan = tr["organ_index"] == list(tr["organs"]).index("pancreas")
+    lab = sitk.ReadImage(os.path.join(track_dir, "labels", "frame_0000.nii.gz"))
+    from ..images import Geometry
+
+    geom = Geometry.of(lab)
+    with open(os.path.join(track_dir, "track.csv")) as f:
+        rows = list(csv.DictReader(f))
+    methods = {"estimate": tr["estimate_mm"], "propagate": tr["propagate_mm"], "initial": np.repeat(tr["planning_mm"][None], n, 0)}
+    frames = []
+    for k in range(n):
+        truth = gt["truth_mm"][k][pan]
+        rec = {"frame": k, "latency_s": float(rows[k]["latency_s"]) if k < len(rows) else float("nan")}
+        for name, arr in methods.items():
+            est = arr[k][pan]
+            e = np.linalg.norm(est - truth, axis=1)
+            rec[name] = {"error_mm": float(e.mean()), "p95_mm": float(np.percentile(e, 95)),
+                         "dice": dice(voxelize(est, geom), voxelize(truth, geom)),
+                         "centroid_error_mm": float(np.linalg.norm(est.mean(0) - truth.mean(0)))}
+        frames.append(rec)
+    results = {name: {key: float(np.mean([f[name][key] for f in frames])) for key in ("error_mm", "p95_mm", "dice", "centroid_error_mm")}
+               for name in methods}
+    lat = np.array([f["latency_s"] for f in frames[1:]] or [frames[0]["latency_s"]])
+    return {"results": results, "latency_s": {"median": float(np.median(lat)), "p95": float(np.percentile(lat, 95))}, "frames": frames}

@@ -1,0 +1,215 @@
+"""Track a cine series: a planning scan with its organ labels and 2D cine frames in, 3D organ motion out.
+
+For each frame, in acquisition order: the frame is registered against the last frame of the same plane
+(the first against the planning image resampled on that plane), organ by organ
+(:func:`warpmpm.registration.register_slice_organs`, the organ footprints from the current estimate's
+label map); the particles lying within the frame's slice thickness of its plane take that motion in the
+plane (the through-plane part is left to the physics or to another plane); the multi-organ MPM model
+moves from the previous frame's state to the new equilibrium. The ground truth, when there is one, is
+never read here.
+
+Per frame the tracker writes the estimated label map on the planning grid (same label values as the
+input), optionally the 3D displacement field (vector image, mm), and a row of ``track.csv``.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import SimpleITK as sitk
+
+from .cine import CineFrame
+from .driving import ConvergenceConfig, SliceDrivenEstimator
+from .errors import InputError
+from .groundtruth import particle_label_map
+from .images import ORGANS, Case
+from .model import ParticleModel, build_model
+from .registration import register_slice_organs
+from .solver import SolverConfig
+
+TRACK_FIELDS = ["frame", "time_s", "plane", "file", "steps", "converged", "reason", "wall_s", "rms_residual_mm", "registration_ms",
+                "pancreas_x_mm", "pancreas_y_mm", "pancreas_z_mm", "pancreas_shift_mm"] + [f"max_{o}_mm" for o in ORGANS]
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """How a series is tracked."""
+
+    organs: str = "psdl"
+    """Organ combination (paper letters) of the model; organs absent from the labels are left out."""
+    particle_step: int = 1
+    """In-plane particle sampling step of the planning model."""
+    max_steps: int = 3000
+    """Steps per frame before the frame is reported not converged."""
+    displacement: bool = False
+    """Also write each frame's 3D displacement field."""
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    """The MPM solver's settings."""
+    margin_mm: float = 40.0
+    """Room around the organs for the motion of a whole series (the grid is built once)."""
+
+
+@dataclass
+class TrackedFrame:
+    """One frame's estimate: positions (N, 3, mm) and what it cost."""
+
+    positions_mm: np.ndarray
+    row: dict
+
+
+class Tracker:
+    """Follows a cine series frame after frame (module docstring)."""
+
+    def __init__(self, case: Case, frames: list[CineFrame], config: TrackerConfig | None = None):
+        cfg = config or TrackerConfig()
+        self.config, self.case, self.frames = cfg, case, frames
+        if case.image is None:
+            raise InputError("tracking needs the planning image (--image): the first frame of each plane is registered to it")
+        present = [o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o])]
+        wanted = [o for o, c in zip(ORGANS, "psdl") if c in cfg.organs and o in present]
+        self.model: ParticleModel = build_model(case, tuple(wanted), sampling_step=cfg.particle_step)
+        m = self.model
+        self.label_values = {o: case.label_map[o] for o in m.organs}
+        self.plane_of: dict[int, np.ndarray] = {}
+        for f in frames:
+            if f.plane in self.plane_of:
+                continue
+            on = np.nonzero(np.abs(f.distance_mm(m.positions_mm)) <= f.thickness_mm / 2)[0]
+            if len(on) == 0:
+                raise InputError(f"cine frame {f.path}: its plane does not cross the model's organs {m.letters}")
+            self.plane_of[f.plane] = on
+        self.driven = np.unique(np.concatenate(list(self.plane_of.values())))
+        reach = [m.positions_mm + s * cfg.margin_mm * np.eye(3)[k] for k in range(3) for s in (-0.5, 0.5)]
+        self.estimator = SliceDrivenEstimator(m, driven=self.driven, solver_config=cfg.solver, extra_points_mm=np.vstack(reach),
+                                              convergence=ConvergenceConfig(max_steps=cfg.max_steps))
+        self.planning_image = case.intensity_image()
+        self.last_frame: dict[int, CineFrame] = {}
+        self.labels_now = case.labels.copy()
+        self.propagated = m.positions_mm.copy()  # the baseline: each frame's slice motion copied to every particle
+
+    def _organ_masks(self, frame: CineFrame) -> tuple[sitk.Image, dict]:
+        img = self.case.geometry.apply_to(sitk.GetImageFromArray(self.labels_now.astype(np.int32)))
+        lab = frame.slice_2d(img, sitk.sitkNearestNeighbor)
+        arr = sitk.GetArrayFromImage(lab)
+        own = {}
+        for o, v in self.label_values.items():
+            mi = sitk.GetImageFromArray((np.rint(arr) == v).astype(np.uint8))
+            mi.CopyInformation(lab)
+            own[o] = mi
+        whole = sitk.GetImageFromArray(np.isin(np.rint(arr), list(self.label_values.values())).astype(np.uint8))
+        whole.CopyInformation(lab)
+        whole = sitk.BinaryDilate(whole, [max(1, int(round(6.0 / s))) for s in whole.GetSpacing()])
+        if not np.any(sitk.GetArrayViewFromImage(whole)):
+            raise InputError(f"cine frame {frame.path} shows none of the organs {self.model.letters}")
+        return whole, own
+
+    def step(self, n: int, frame: CineFrame) -> TrackedFrame:
+        """Estimate one frame (from the previous one's state)."""
+        m = self.model
+        prev = self.last_frame.get(frame.plane)
+        stored = frame.slice_2d(self.planning_image) if prev is None else prev.slice_2d()
+        captured = frame.slice_2d()
+        mask, own = self._organ_masks(frame)
+        whole, per_organ = register_slice_organs(stored, captured, frame.centre_mm, mask, own)
+        if not whole.ok:
+            raise InputError(f"cine frame {frame.path}: the slice registration gave a degenerate transform ({whole.stop})")
+        x = self.estimator.positions_mm()
+        organ_of = np.asarray(m.organs)[m.organ_index]
+
+        def moved(pos, organs_of):
+            uv = frame.in_plane(pos)
+            out = uv @ whole.affine.A.T + whole.affine.t_mm
+            for o, r in per_organ.items():
+                sel = organs_of == o
+                out[sel] = uv[sel] @ r.affine.A.T + r.affine.t_mm
+            d = out - uv
+            return pos + d[:, :1] * frame.e_u + d[:, 1:] * frame.e_v
+
+        targets = x[self.driven].copy()
+        axes = np.zeros((len(self.driven), 3, 3))
+        on = np.isin(self.driven, self.plane_of[frame.plane])
+        targets[on] = moved(x[self.driven[on]], organ_of[self.driven[on]])
+        axes[on] = frame.projector
+        self.propagated = moved(self.propagated, organ_of)
+        res = self.estimator.estimate(targets, axes=axes)
+        self.last_frame[frame.plane] = frame
+        self.labels_now = particle_label_map(m, res.positions_mm, self.label_values)
+        pan = m.organ_slice("pancreas")
+        c = res.positions_mm[pan].mean(0)
+        disp = np.linalg.norm(res.positions_mm - m.positions_mm, axis=1)
+        row = {"frame": n, "time_s": round(frame.time_s, 4), "plane": frame.plane, "file": os.path.basename(frame.path),
+               "steps": res.steps, "converged": res.converged, "reason": res.reason, "wall_s": res.wall_s,
+               "rms_residual_mm": res.final_rms_mm, "registration_ms": 1e3 * (whole.wall_s + sum(r.wall_s for r in per_organ.values())),
+               "pancreas_x_mm": c[0], "pancreas_y_mm": c[1], "pancreas_z_mm": c[2],
+               "pancreas_shift_mm": float(np.linalg.norm(c - m.positions_mm[pan].mean(0)))}
+        for o in ORGANS:
+            row[f"max_{o}_mm"] = float(disp[m.organ_slice(o)].max()) if o in m.organs else ""
+        return TrackedFrame(res.positions_mm, row)
+
+    def run(self, out_dir: str, progress=None) -> list[dict]:
+        """Track every frame, writing ``out_dir`` (module docstring); returns the CSV rows."""
+        os.makedirs(os.path.join(out_dir, "labels"), exist_ok=True)
+        if self.config.displacement:
+            os.makedirs(os.path.join(out_dir, "displacement"), exist_ok=True)
+        rows, positions, propagated = [], [], []
+        for n, frame in enumerate(self.frames):
+            t0 = time.perf_counter()
+            tf = self.step(n, frame)
+            tf.row["latency_s"] = time.perf_counter() - t0
+            rows.append(tf.row)
+            positions.append(tf.positions_mm)
+            propagated.append(self.propagated.copy())
+            lab = self.case.geometry.apply_to(sitk.GetImageFromArray(self.labels_now.astype(np.uint8)))
+            _write_image(lab, os.path.join(out_dir, "labels", f"frame_{n:04d}.nii.gz"))
+            if self.config.displacement:
+                _write_image(displacement_field(self.model, tf.positions_mm, self.case), os.path.join(out_dir, "displacement",
+                                                                                                    f"frame_{n:04d}.nii.gz"))
+            if progress:
+                progress(f"frame {n}: plane {frame.plane}, {tf.row['steps']} steps, {tf.row['latency_s'] * 1e3:.0f} ms "
+                         f"(registration {tf.row['registration_ms']:.0f} ms), pancreas moved {tf.row['pancreas_shift_mm']:.2f} mm")
+        _write_csv(os.path.join(out_dir, "track.csv"), rows, TRACK_FIELDS + ["latency_s"])
+        tmp = os.path.join(out_dir, "particles.part.npz")
+        np.savez_compressed(tmp, planning_mm=self.model.positions_mm, organ_index=self.model.organ_index,
+                            organs=np.asarray(self.model.organs), estimate_mm=np.asarray(positions), propagate_mm=np.asarray(propagated))
+        os.replace(tmp, os.path.join(out_dir, "particles.npz"))
+        return rows
+
+
+def displacement_field(model: ParticleModel, positions_mm: np.ndarray, case: Case, sigma_mm: float = 4.0) -> sitk.Image:
+    """The 3D displacement (mm, world axes) on the planning grid: each particle's displacement scattered to
+    its planning voxel and filled by normalised Gaussian smoothing; zero far from the organs."""
+    g = case.geometry
+    u = positions_mm - model.positions_mm
+    ijk = np.clip(np.rint(g.world_to_index(model.positions_mm)).astype(int), 0, np.asarray(g.size) - 1)
+    num = np.zeros(g.size[::-1] + (3,))
+    den = np.zeros(g.size[::-1])
+    np.add.at(num, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), u)
+    np.add.at(den, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), 1.0)
+
+    def smooth(a):
+        return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(g.apply_to(sitk.GetImageFromArray(a.astype(np.float32))), sigma_mm))
+
+    d = smooth(den)
+    f = np.stack([smooth(num[..., c]) for c in range(3)], axis=-1) / np.maximum(d, 1e-6)[..., None]
+    f *= np.clip(d / max(float(d.max()), 1e-12) * 4.0, 0.0, 1.0)[..., None]
+    return g.apply_to(sitk.GetImageFromArray(f.astype(np.float64), isVector=True))
+
+
+def _write_image(img: sitk.Image, path: str) -> None:
+    tmp = path[: -len(".nii.gz")] + ".part.nii.gz"
+    sitk.WriteImage(img, tmp)
+    os.replace(tmp, path)
+
+
+def _write_csv(path: str, rows: list[dict], fields: list[str]) -> None:
+    tmp = path + ".part"
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
+    os.replace(tmp, path)
