@@ -174,6 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--thickness-mm", type=float, default=6.0)
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--particle-step", type=int, default=1)
+    c.add_argument("--format", default="nifti", choices=["nifti", "dicom"], help="frames as NIfTI (one voxel thick) or 2D DICOM")
     c.add_argument("--out", required=True)
 
     e = sub.add_parser("evaluate-track", help="score a track against a synthetic series' truth")
@@ -406,7 +407,7 @@ def cmd_make_cine(a) -> int:
         if p not in ("sagittal", "coronal", "axial"):
             raise InputError(f"unknown plane {p!r}; use sagittal, coronal or axial")
     make_cine(case, a.out, planes=planes, frames=a.frames, fps=a.fps, thickness_mm=a.thickness_mm, seed=a.seed,
-              particle_step=a.particle_step, progress=lambda t: print(t, flush=True))
+              particle_step=a.particle_step, fmt=a.format, progress=lambda t: print(t, flush=True))
     print(f"wrote {a.out}/cine and {a.out}/truth")
     return 0
 

@@ -35,9 +35,13 @@ BREATHING_MM = {"pancreas": (10.0, 3.0), "stomach": (12.0, 4.0), "duodenum": (10
 
 def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8, fps: float = 4.0, period_s: float = 4.0,
               thickness_mm: float = 6.0, noise_sd: float = 0.02, push_mm: float = 4.0, particle_step: int = 1, seed: int = 0,
-              progress=None) -> dict:
+              fmt: str = "nifti", progress=None) -> dict:
     """Write ``out_dir/cine`` (frames) and ``out_dir/truth`` (positions, label maps) for ``case``; returns the
-    series' parameters (also in ``truth/series.json``). Frames cycle through ``planes``."""
+    series' parameters (also in ``truth/series.json``). Frames cycle through ``planes``; ``fmt``: ``nifti``
+    (one voxel thick) or ``dicom`` (2D MR DICOM, 16-bit, with position, orientation, acquisition time,
+    instance number and slice thickness)."""
+    if fmt not in ("nifti", "dicom"):
+        raise InputError(f"unknown frame format {fmt!r}; use nifti or dicom")
     if case.image is None:
         raise InputError("a synthetic cine series needs the planning image")
     if frames < 1 or fps <= 0 or period_s <= 0 or thickness_mm <= 0:
@@ -76,7 +80,10 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
         warped = warp_image(case, model, pos)
         orientation = planes[k % len(planes)]
         frame = _frame_image(warped, case, orientation, pan_c, thickness_mm, noise_sd * float(np.ptp(case.image)), rng)
-        sitk.WriteImage(frame, os.path.join(cine, f"frame_{k:04d}_{orientation}.nii.gz"))
+        if fmt == "nifti":
+            sitk.WriteImage(frame, os.path.join(cine, f"frame_{k:04d}_{orientation}.nii.gz"))
+        else:
+            _write_dicom_frame(frame, os.path.join(cine, f"frame_{k:04d}.dcm"), k, t, thickness_mm, case.image)
         from ..groundtruth import particle_label_map
 
         lab = particle_label_map(model, pos, {o: case.label_map[o] for o in model.organs})
@@ -93,6 +100,28 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
     with open(os.path.join(truth, "series.json"), "w") as f:
         json.dump(params, f, indent=1)
     return params
+
+
+def _write_dicom_frame(frame: sitk.Image, path: str, k: int, t: float, thickness_mm: float, planning: np.ndarray) -> None:
+    """A frame as a 2D MR DICOM file: the thin axis last (so the writer's position and orientation place the
+    plane), intensities mapped linearly to 0..4000 with the planning image's range (16-bit), acquisition time
+    ``t`` seconds after 10:00:00, instance number ``k + 1``."""
+    thin = [a for a in range(3) if frame.GetSize()[a] == 1][0]
+    order = [a for a in range(3) if a != thin] + [thin]
+    img = sitk.PermuteAxes(frame, order)
+    lo, hi = float(np.min(planning)), float(np.max(planning))
+    arr = np.clip((sitk.GetArrayFromImage(img) - lo) / max(hi - lo, 1e-9) * 4000.0, 0, 32000)
+    out = sitk.GetImageFromArray(np.rint(arr).astype(np.int16))
+    out.CopyInformation(img)
+    hh, rest = divmod(10 * 3600 + t, 3600)
+    mm, ss = divmod(rest, 60)
+    for tag, value in {"0008|0060": "MR", "0008|0032": f"{int(hh):02d}{int(mm):02d}{ss:09.6f}", "0020|0013": str(k + 1),
+                       "0018|0050": f"{thickness_mm:.3f}"}.items():
+        out.SetMetaData(tag, value)
+    w = sitk.ImageFileWriter()
+    w.KeepOriginalImageUIDOn()
+    w.SetFileName(path)
+    w.Execute(out)
 
 
 def _frame_image(volume: np.ndarray, case: Case, orientation: str, through_mm: np.ndarray, thickness_mm: float, noise: float,
