@@ -52,8 +52,11 @@ def make_files(d):
     open(f"{d}/empty.nii", "wb").write(b"")
     open(f"{d}/junk.rrd", "wb").write(b"junk")
     open(f"{d}/empty.rrd", "wb").write(b"")
-    small = replace(c, labels=c.labels[:, :, :20].copy(), image=c.image[:, :, :20].copy(), geometry=c.geometry.crop((0, 0, 0), (20,) + c.geometry.size[1:]))
-    write_case(small, f"{d}/other_grid.nii.gz")
+    far = replace(c, geometry=replace(c.geometry, origin_mm=(5000.0, 0.0, 0.0)))
+    write_case(far, f"{d}/far_labels.nii.gz", f"{d}/other_grid.nii.gz")
+    import SimpleITK as sitk
+
+    sitk.WriteImage(sitk.Flip(sitk.ReadImage(f"{d}/labels.nii.gz"), [False, True, False]), f"{d}/flipped.nii.gz")
     os.makedirs(f"{d}/adir", exist_ok=True)
 
 
@@ -69,7 +72,9 @@ def cases(d):
         ("junk file as labels", run + ["--labels", f"{d}/junk.nii.gz"], "error"),
         ("empty file as labels", run + ["--labels", f"{d}/empty.nii"], "error"),
         ("NaN voxels in the image", run + ["--labels", f"{d}/nan_labels.nii.gz", "--image", f"{d}/nan_image.nii.gz"], "error"),
-        ("image on another grid", run + ["--labels", f"{d}/labels.nii.gz", "--image", f"{d}/other_grid.nii.gz"], "error"),
+        ("image that does not overlap the labels", run + ["--labels", f"{d}/labels.nii.gz", "--image", f"{d}/other_grid.nii.gz"], "error"),
+        ("labels on a flipped grid", run + ["--labels", f"{d}/flipped.nii.gz", "--image", f"{d}/image.nii.gz", "--organs", "p",
+                                           "--max-steps", "50"], "warning"),
         ("no pancreas in the labels", run + ["--labels", f"{d}/nopancreas.nii.gz"], "error"),
         ("wrong preset (a far 'duodenum')", run + ["--labels", f"{d}/far.nii.gz", "--organs", "pd", "--max-steps", "50"], "warning"),
         ("unknown preset", run + ["--preset", "foo"], "error"),

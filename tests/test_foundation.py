@@ -117,9 +117,9 @@ def test_bad_inputs(tmp_path, tiny_case):
         load_case(tmp_path / "junk.nii.gz")
     write_case(tiny_case, tmp_path / "l.mha")
     img = tiny_case.intensity_image()
-    img.SetSpacing((9.0, 9.0, 9.0))
+    img.SetOrigin((5000.0, 0.0, 0.0))
     sitk.WriteImage(img, str(tmp_path / "i.mha"))
-    with pytest.raises(InputError, match="different grids.*spacing"):
+    with pytest.raises(InputError, match="do not overlap.*origin"):
         load_case(tmp_path / "l.mha", tmp_path / "i.mha")
     with pytest.raises(InputError, match="unknown label preset"):
         resolve_labels("nope")
@@ -166,3 +166,22 @@ def test_dicom_series_folder(tmp_path):
     empty.mkdir()
     with pytest.raises(InputError, match="no DICOM series"):
         read_volume(empty)
+
+
+def test_a_label_map_on_a_reoriented_grid_is_resampled_onto_the_image(tmp_path, tiny_case):
+    """TotalSegmentator's NIfTI beside a DICOM series may flip an axis: same region, another grid."""
+    import warnings
+
+    from warpmpm.errors import InputWarning
+
+    write_case(tiny_case, tmp_path / "l.nii.gz", tmp_path / "i.nii.gz")
+    lab = sitk.ReadImage(str(tmp_path / "l.nii.gz"))
+    flipped = sitk.Flip(lab, [False, True, False])  # y reversed, the same physical region
+    assert flipped.GetDirection() != lab.GetDirection()
+    sitk.WriteImage(flipped, str(tmp_path / "flipped.nii.gz"))
+    with pytest.warns(InputWarning, match="resampled onto the image's grid"):
+        case = load_case(tmp_path / "flipped.nii.gz", tmp_path / "i.nii.gz")
+    np.testing.assert_array_equal(case.labels, tiny_case.labels)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_case(tmp_path / "l.nii.gz", tmp_path / "i.nii.gz")  # the same grid: no warning

@@ -284,8 +284,9 @@ class Case:
 def load_case(labels_path, image_path=None, preset: str | dict[str, int] = "amos", name: str | None = None) -> Case:
     """Read a label map (and optionally its image) into a :class:`Case`.
 
-    The image must share the label map's grid exactly; otherwise :class:`InputError` says how
-    the two grids differ. All checks run before any work is done.
+    A label map on another grid than the image (another axis order, a flipped axis, another spacing) is
+    resampled onto the image's grid with a warning; one that does not overlap the image is refused.
+    All checks run before any work is done.
     """
     label_map = resolve_labels(preset)
     lab_img = read_volume(labels_path)
@@ -300,7 +301,7 @@ def load_case(labels_path, image_path=None, preset: str | dict[str, int] = "amos
         img = read_volume(image_path)
         diff = grid_differences(Geometry.of(img), geometry)
         if diff:
-            raise InputError(f"image {image_path} and label map {labels_path} are on different grids: " + "; ".join(diff))
+            labels, geometry = _labels_onto_image(lab_img, labels, img, labels_path, image_path, diff)
         image = sitk.GetArrayFromImage(img).astype(np.float32)
         bad = ~np.isfinite(image)
         if bad.any():
@@ -360,6 +361,29 @@ def plausibility_warnings(case: "Case") -> list[str]:
             out.append(f"the {organ} (label {value}) lies {d:.0f} mm from the pancreas at its nearest; it should touch or "
                        f"nearly touch it (<= {MAX_DISTANCE_TO_PANCREAS_MM:.0f} mm): is the label preset right?")
     return out
+
+
+def _labels_onto_image(lab_img: sitk.Image, labels: np.ndarray, img: sitk.Image, labels_path, image_path, diff: list[str]):
+    """A label map on another grid than its image (TotalSegmentator's NIfTI beside a DICOM series: other axis
+    order, a flipped axis, another spacing) resampled onto the image's grid, nearest neighbour, with a
+    one-line warning; :class:`InputError` when fewer than half of the labelled voxels fall inside the image."""
+    geo_l, geo_i = Geometry.of(lab_img), Geometry.of(img)
+    kk, jj, ii = np.nonzero(labels)
+    if len(ii):
+        pts = geo_l.index_to_world(np.stack([ii, jj, kk], axis=1)[:: max(1, len(ii) // 20000)])
+        idx = geo_i.world_to_index(pts)
+        inside = float(np.mean(np.all((idx >= -0.5) & (idx <= np.asarray(geo_i.size) - 0.5), axis=1)))
+    else:
+        inside = 0.0
+    if inside < 0.5:
+        raise InputError(f"image {image_path} and label map {labels_path} do not overlap ({inside:.0%} of the labelled "
+                         "voxels fall inside the image): " + "; ".join(diff))
+    lab = sitk.GetImageFromArray(labels.astype(np.int32))
+    lab.CopyInformation(lab_img)
+    resampled = sitk.Resample(lab, img, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkInt32)
+    warnings.warn(f"label map {labels_path} is on another grid than the image ({'; '.join(diff)}): resampled onto the "
+                  "image's grid (nearest neighbour)", InputWarning, stacklevel=3)
+    return sitk.GetArrayFromImage(resampled), geo_i
 
 
 def crop_to_organs(case: Case, organs, margin_mm: float = 15.0) -> tuple[Case, tuple[int, int, int]]:
