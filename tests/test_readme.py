@@ -4,7 +4,6 @@ import os
 import re
 import warnings
 
-import pytest
 
 from conftest import data_case
 

@@ -61,11 +61,9 @@ def test_track_without_the_truth_and_evaluate_against_it(series, tmp_path, capsy
 
 def test_a_frame_equal_to_the_planning_slice_gives_no_motion(tmp_path, tiny_case):
     from warpmpm.cine import read_cine
-    from warpmpm.images import write_case
     from warpmpm.solver import SolverConfig
     from warpmpm.tracker import Tracker, TrackerConfig
 
-    g = tiny_case.geometry
     pan = np.nonzero(tiny_case.organ_mask("pancreas"))
     i = int(np.median(pan[2]))
     frame = tiny_case.intensity_image()[i:i + 1, :, :]  # the planning's own sagittal slice, one voxel thick
@@ -74,7 +72,6 @@ def test_a_frame_equal_to_the_planning_slice_gives_no_motion(tmp_path, tiny_case
     tr = Tracker(tiny_case, read_cine(str(tmp_path / "cine")), TrackerConfig(solver=SolverConfig(device="cpu"), max_steps=800))
     rows = tr.run(str(tmp_path / "out"))
     assert float(rows[0]["pancreas_shift_mm"]) < 0.3
-    del g
 
 
 def test_bad_cine_folders_are_named(tmp_path, tiny_case):

@@ -274,7 +274,7 @@ def _build_on_isotropic_lattice(case: Case, organs, sampling_step: int, mats: di
     h = float((case.geometry.voxel_volume_mm3 * sampling_step**2) ** (1.0 / 3.0))
     lat = lattice_geometry(case.geometry, h)
     labels = shape_based_labels(case, organs, lat)
-    pos, idx, ijk = [], [], []
+    pos, idx = [], []
     for n, organ in enumerate(organs):
         kk, jj, ii = np.nonzero(labels == n)
         if len(ii) == 0:

@@ -18,7 +18,6 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-import SimpleITK as sitk
 
 from .errors import InputError, InputWarning
 from .images import Geometry

@@ -7,7 +7,7 @@ import numpy as np
 
 from ..metrics import evaluate
 from ..selection import ConditionSelector
-from ..slices import DrivingSlice, driven_indices
+from ..slices import driven_indices
 from .baselines import volume_registration
 from .case import prepare_case
 from .config import CaseConfig
