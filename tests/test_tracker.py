@@ -34,7 +34,7 @@ def test_track_without_the_truth_and_evaluate_against_it(series, tmp_path, capsy
         out = str(tmp_path / "track")
         code = main(["track", "--image", os.path.join(series, "planning", "image.nii.gz"), "--labels",
                      os.path.join(series, "planning", "labels.nii.gz"), "--cine", os.path.join(series, "cine"), "--out", out,
-                     "--device", "cpu", "--displacement", "--max-steps", "1500"])
+                     "--device", "cpu", "--displacement", "--max-steps", "1500", "--rrd", str(tmp_path / "track.rrd")])
     finally:
         shutil.move(hidden, truth)
     assert code == 0
@@ -47,6 +47,11 @@ def test_track_without_the_truth_and_evaluate_against_it(series, tmp_path, capsy
         assert disp.GetNumberOfComponentsPerPixel() == 3 and disp.GetSize() == planning.GetSize()
     import csv
 
+    from warpmpm.viewer.__main__ import summarize
+
+    rec = summarize(str(tmp_path / "track.rrd"))  # the frames in their planes beside the estimate, timeline frame
+    assert rec["/estimate/pancreas"]["rows"] == 3 and "frame" in rec["/estimate/pancreas"]["timelines"]
+    assert {"/cine/plane_0/image", "/cine/plane_1/image", "/cine/plane_0/box"} <= set(rec)
     rows = list(csv.DictReader(open(os.path.join(out, "track.csv"))))
     assert [r["plane"] for r in rows] == ["0", "1", "0"] and all(float(r["steps"]) > 0 for r in rows)
     assert main(["evaluate-track", "--track", out, "--truth", truth, "--json", str(tmp_path / "e.json")]) == 0

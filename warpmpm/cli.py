@@ -160,6 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--particle-step", type=int, default=1)
     k.add_argument("--max-steps", type=int, default=3000, help="steps per frame before it is reported not converged")
     k.add_argument("--displacement", action="store_true", help="also write each frame's 3D displacement field")
+    k.add_argument("--rrd", default=None, help="also write a Rerun recording: the cine frames in their 3D planes beside the estimate")
 
     c = sub.add_parser("make-cine", help="a synthetic cine series with its 3D truth (for tests and benchmarks)",
                        description="Breathing plus a contact push, each frame's truth simulated with perturbed materials, frames "
@@ -381,7 +382,13 @@ def cmd_track(a) -> int:
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
           f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes", file=sys.stderr)
-    rows = tracker.run(a.out, progress=lambda t: print(t, flush=True))
+    recorder = None
+    if a.rrd:
+        from .experiment.io import check_output_path
+        from .viewer.recording import TrackRecorder
+
+        recorder = TrackRecorder(check_output_path(a.rrd, "--rrd"), tracker.model)
+    rows = tracker.run(a.out, progress=lambda t: print(t, flush=True), recorder=recorder)
     import numpy as np
 
     lat = np.array([r["latency_s"] for r in rows[1:]] or [rows[0]["latency_s"]])

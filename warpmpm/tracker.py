@@ -150,8 +150,20 @@ class Tracker:
             row[f"max_{o}_mm"] = float(disp[m.organ_slice(o)].max()) if o in m.organs else ""
         return TrackedFrame(res.positions_mm, row)
 
-    def run(self, out_dir: str, progress=None) -> list[dict]:
-        """Track every frame, writing ``out_dir`` (module docstring); returns the CSV rows."""
+    def run(self, out_dir: str, progress=None, recorder=None) -> list[dict]:
+        """Track every frame, writing ``out_dir`` (module docstring); returns the CSV rows. ``recorder``
+        (e.g. :class:`warpmpm.viewer.recording.TrackRecorder`) gets ``on_frame(n, frame, positions_mm)`` and
+        is closed here (``ok=False`` when tracking fails)."""
+        ok = False
+        try:
+            rows = self._run(out_dir, progress, recorder)
+            ok = True
+            return rows
+        finally:
+            if recorder is not None:
+                recorder.close(ok=ok)
+
+    def _run(self, out_dir: str, progress, recorder) -> list[dict]:
         os.makedirs(os.path.join(out_dir, "labels"), exist_ok=True)
         if self.config.displacement:
             os.makedirs(os.path.join(out_dir, "displacement"), exist_ok=True)
@@ -163,6 +175,8 @@ class Tracker:
             rows.append(tf.row)
             positions.append(tf.positions_mm)
             propagated.append(self.propagated.copy())
+            if recorder is not None:
+                recorder.on_frame(n, frame, tf.positions_mm)
             lab = self.case.geometry.apply_to(sitk.GetImageFromArray(self.labels_now.astype(np.uint8)))
             _write_image(lab, os.path.join(out_dir, "labels", f"frame_{n:04d}.nii.gz"))
             if self.config.displacement:

@@ -215,3 +215,48 @@ class RerunRecorder:
             return
         optimize_recording(self.tmp)
         os.replace(self.tmp, self.path)
+
+
+class TrackRecorder:
+    """A Rerun recording of a tracked cine series: per frame (timeline ``frame``) the estimated organs in 3D,
+    the cine frame as an image and its plane as a box in 3D. Written under a temporary name and renamed on
+    ``close(ok=True)``; ``close(ok=False)`` leaves nothing."""
+
+    def __init__(self, path: str, model, application: str = "warpmpm-track"):
+        import os
+
+        self.path = os.path.abspath(path)
+        self.tmp = self.path + ".part"
+        self.model = model
+        self.rec = rr.RecordingStream(application)
+        self.rec.save(self.tmp)
+        for n, organ in enumerate(model.organs):
+            sel = model.organ_index == n
+            self.rec.log(f"planning/{organ}", rr.Points3D(model.positions_mm[sel], colors=ORGAN_COLOURS.get(organ), radii=0.6),
+                         static=True)
+
+    def on_frame(self, n: int, frame, positions_mm: np.ndarray) -> None:
+        self.rec.set_time("frame", sequence=n)
+        for k, organ in enumerate(self.model.organs):
+            sel = self.model.organ_index == k
+            self.rec.log(f"estimate/{organ}", rr.Points3D(positions_mm[sel], colors=ORGAN_COLOURS.get(organ), radii=0.6))
+        arr = np.asarray(__import__("SimpleITK").GetArrayFromImage(frame.slice_2d()))
+        lo, hi = np.percentile(arr, [1, 99])
+        self.rec.log(f"cine/plane_{frame.plane}/image", rr.Image(np.clip((arr - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)))
+        size = np.asarray(frame.image.GetSize()) * np.asarray(frame.image.GetSpacing())
+        axes = [a for a in range(3) if a != frame.thin_axis]
+        half = np.abs(frame.e_u) * size[axes[0]] / 2 + np.abs(frame.e_v) * size[axes[1]] / 2 + np.abs(frame.normal) * frame.thickness_mm / 2
+        self.rec.log(f"cine/plane_{frame.plane}/box", rr.Boxes3D(centers=[frame.centre_mm], half_sizes=[half],
+                                                                  colors=[(255, 255, 255, 60)], radii=0.3))
+
+    def close(self, ok: bool = True) -> None:
+        import os
+
+        self.rec.flush()
+        self.rec.disconnect()
+        if not ok:
+            if os.path.exists(self.tmp):
+                os.remove(self.tmp)
+            return
+        optimize_recording(self.tmp)
+        os.replace(self.tmp, self.path)
