@@ -202,19 +202,24 @@ class RerunRecorder:
         """Finish the file; on success compact its chunks (``rerun rrd optimize``: the SDK writes a few
         steps per chunk, and a viewer opening the raw file shows the newest step before all of them have
         loaded, seen in Rerun 0.41) and rename it to ``path``; on failure delete it."""
-        import os
-
         if self._closed:
             return
         self._closed = True
-        self.rec.flush()
-        self.rec.disconnect()
-        if not ok:
-            if os.path.exists(self.tmp):
-                os.remove(self.tmp)
-            return
-        optimize_recording(self.tmp)
-        os.replace(self.tmp, self.path)
+        finish_recording(self.rec, self.tmp, self.path, ok)
+
+
+def finish_recording(rec, tmp: str, path: str, ok: bool) -> None:
+    """Close a recording written to ``tmp``: on success compact it and rename it to ``path``; on failure delete it."""
+    import os
+
+    rec.flush()
+    rec.disconnect()
+    if not ok:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        return
+    optimize_recording(tmp)
+    os.replace(tmp, path)
 
 
 class TrackRecorder:
@@ -250,13 +255,4 @@ class TrackRecorder:
                                                                   colors=[(255, 255, 255, 60)], radii=0.3))
 
     def close(self, ok: bool = True) -> None:
-        import os
-
-        self.rec.flush()
-        self.rec.disconnect()
-        if not ok:
-            if os.path.exists(self.tmp):
-                os.remove(self.tmp)
-            return
-        optimize_recording(self.tmp)
-        os.replace(self.tmp, self.path)
+        finish_recording(self.rec, self.tmp, self.path, ok)
