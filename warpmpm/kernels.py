@@ -6,13 +6,15 @@ from and to the public millimetre world coordinates.
 
 The step, for particles p and grid nodes i:
 
-1. ``compute_stress``: Kirchhoff stress of the fixed-corotated model (Stomakhin et al. 2012),
+1. ``p2g``: the Kirchhoff stress of the fixed-corotated model (Stomakhin et al. 2012),
    ``tau = 2 mu (F - R) F^T + lambda (J - 1) J I``, R = U V^T of the SVD of F, computed by a
-   polar-decomposition Newton iteration (4x cheaper on the CPU) with ``wp.svd3`` as the fallback.
-2. ``p2g``: mass, APIC momentum ``w (m v + (m C - dt V0 4/dx^2 tau) (x_i - x_p))`` and the
-   external (driving) force ``w dt f_p``, scattered with atomics.
-3. ``grid_update``: velocity = momentum / mass, damping, wall conditions.
-4. ``g2p``: particle velocity, affine C, position, ``F <- (I + dt C) F``, and the guards that keep
+   polar-decomposition Newton iteration (4x cheaper on the CPU) with ``wp.svd3`` as the fallback;
+   then mass, APIC momentum ``w (m v + (m C - dt V0 4/dx^2 tau) (x_i - x_p))`` and the external
+   (driving) force ``w dt f_p``, scattered with atomics. Stress and scatter are one pass: the stress
+   is never written to memory and read back (72 bytes a particle a step less).
+2. ``grid_update``: velocity = momentum / mass, damping, wall conditions; it zeroes the mass and
+   momentum it has read (no separate clearing pass).
+3. ``g2p``: particle velocity, affine C, position, ``F <- (I + dt C) F``, and the guards that keep
    every particle inside the grid and flag non-finite values.
 """
 
@@ -90,37 +92,23 @@ def fixed_corotated_kirchhoff(F: wp.mat33, mu: float, lam: float):
 
 
 @wp.kernel
-def compute_stress(
-    F: wp.array(dtype=wp.mat33),
-    mu: wp.array(dtype=float),
-    lam: wp.array(dtype=float),
-    tau: wp.array(dtype=wp.mat33),
-):
-    p = wp.tid()
-    tau[p] = fixed_corotated_kirchhoff(F[p], mu[p], lam[p])
-
-
-@wp.kernel
-def clear_grid(grid_m: wp.array(dtype=float, ndim=3), grid_mv: wp.array(dtype=wp.vec3, ndim=3)):
-    i, j, k = wp.tid()
-    grid_m[i, j, k] = 0.0
-    grid_mv[i, j, k] = wp.vec3(0.0)
-
-
-@wp.kernel
 def p2g(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
-    tau: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
     f_ext: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
     vol0: wp.array(dtype=float),
+    mu: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
     dx: float,
     dt: float,
     grid_m: wp.array(dtype=float, ndim=3),
     grid_mv: wp.array(dtype=wp.vec3, ndim=3),
 ):
+    """Stress of the particle's F, then the scatter of mass, APIC momentum with the stress impulse and
+    the external force (one pass: the stress is never stored)."""
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x[p]
@@ -129,8 +117,9 @@ def p2g(
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
     wz = bspline_weights(fx, 2)
+    tau = fixed_corotated_kirchhoff(F[p], mu[p], lam[p])
     m = mass[p]
-    affine = m * C[p] - (dt * vol0[p] * 4.0 * inv_dx * inv_dx) * tau[p]
+    affine = m * C[p] - (dt * vol0[p] * 4.0 * inv_dx * inv_dx) * tau
     mom = m * v[p]
     impulse = dt * f_ext[p]
     for a in range(3):
@@ -153,12 +142,17 @@ def grid_update(
     wall: int,
     grid_v: wp.array(dtype=wp.vec3, ndim=3),
 ):
-    """Momentum -> velocity, velocity damping ``v <- v * damping``, slip walls ``wall`` cells thick."""
+    """Momentum -> velocity, velocity damping ``v <- v * damping``, slip walls ``wall`` cells thick.
+
+    Clears the node's mass and momentum once read, so the next step's ``p2g`` scatters into a clean grid
+    without a separate clearing pass over every node (the grid starts zeroed)."""
     i, j, k = wp.tid()
     m = grid_m[i, j, k]
     vel = wp.vec3(0.0)
     if m > 0.0:
         vel = grid_mv[i, j, k] / m * damping
+        grid_m[i, j, k] = 0.0
+        grid_mv[i, j, k] = wp.vec3(0.0)
         n = wp.vec3i(grid_m.shape[0], grid_m.shape[1], grid_m.shape[2])
         if i < wall and vel[0] < 0.0:
             vel = wp.vec3(0.0, vel[1], vel[2])

@@ -44,6 +44,10 @@ class SolverConfig:
             thickness, so organs closer than about one cell touch through the shared grid.
         cell_size_mm: explicit grid cell size (overrides ``particles_per_cell``).
         margin_mm: free space around the scene's bounding box (and any extra points given) for motion.
+            Default 10 mm (was 30): the estimate's grid already covers the targets (and a tracker's
+            whole reach), and the body does not move far past its driven slice; the smaller grid is
+            ~35 % fewer nodes on the phantom (benchmarks/README.md). A particle that would still leave
+            it stops the run with an error naming this field.
         wall_cells: thickness of the slip-wall layer at the domain faces, in cells.
         cfl: Courant number of the derived time step ``dt = cfl * dx / c``. Default 0.5 (was 0.3):
             1.7x fewer steps per frame at the same accuracy (benchmarks/README.md, "Fewer steps").
@@ -67,7 +71,7 @@ class SolverConfig:
 
     particles_per_cell: float = 4.0
     cell_size_mm: float | None = None
-    margin_mm: float = 30.0
+    margin_mm: float = 10.0
     wall_cells: int = 3
     cfl: float = 0.5
     cfl_limit: float = 0.6
@@ -107,8 +111,8 @@ class SolverConfig:
             raise InputError(f"SolverConfig.check_every must be an integer >= 1, got {self.check_every!r}")
 
 
-#: Bytes per particle of a step (two states of x, v, C, F; stress; mass, volume, Lame; force) and per grid node.
-BYTES_PER_PARTICLE = 256
+#: Bytes per particle of a step (two states of x, v, C, F; mass, volume, Lame; force) and per grid node.
+BYTES_PER_PARTICLE = 220
 BYTES_PER_NODE = 28
 
 
@@ -139,7 +143,9 @@ def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm:
     lo = pts.min(axis=0) - cfg.margin_mm
     hi = pts.max(axis=0) + cfg.margin_mm
     pad = (cfg.wall_cells + 2) * dx
-    origin = lo - pad
+    # nodes at whole multiples of dx in world mm: the margin (and the extra points) set how far the grid
+    # reaches, never where its nodes lie, so they cannot change the answer (a half-cell shift did by 4-12 %)
+    origin = np.floor((lo - pad) / dx) * dx
     shape = tuple(int(v) for v in np.ceil((hi + pad - origin) / dx) + 1)
     return dx, origin, shape
 
@@ -282,7 +288,6 @@ class MPMSolver:
         self.grid_m = wp.zeros(shape, dtype=float, device=d)
         self.grid_mv = wp.zeros(shape, dtype=wp.vec3, device=d)
         self.grid_v = wp.zeros(shape, dtype=wp.vec3, device=d)
-        self.tau = wp.zeros(model.n, dtype=wp.mat33, device=d)
         self.zero_force = wp.zeros(model.n, dtype=wp.vec3, device=d)
         self.status = wp.array(np.array([0, 2**31 - 1, 2**31 - 1], dtype=np.int32), dtype=int, device=d)
         self.step_count = 0
@@ -304,9 +309,7 @@ class MPMSolver:
         d = m.device
         force = self.zero_force if control is None else control
         damping = math.exp(-m.damping_per_s * dt)
-        wp.launch(kernels.compute_stress, m.n, [state_in.F, m.mu, m.lam, self.tau], device=d)
-        wp.launch(kernels.clear_grid, m.grid_shape, [self.grid_m, self.grid_mv], device=d)
-        wp.launch(kernels.p2g, m.n, [state_in.x, state_in.v, state_in.C, self.tau, force, m.mass, m.vol0, self._dx, dt,
+        wp.launch(kernels.p2g, m.n, [state_in.x, state_in.v, state_in.C, state_in.F, force, m.mass, m.vol0, m.mu, m.lam, self._dx, dt,
                                      self.grid_m, self.grid_mv], device=d)
         wp.launch(kernels.grid_update, m.grid_shape, [self.grid_m, self.grid_mv, damping, m.config.wall_cells, self.grid_v], device=d)
         wp.launch(kernels.g2p, m.n, [self.grid_v, state_in.x, state_in.F, self._dx, dt, self._x_min, self._x_max, self.step_count,
