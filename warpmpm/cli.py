@@ -160,6 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--particle-step", type=int, default=1)
     k.add_argument("--max-steps", type=int, default=3000, help="steps per frame before it is reported not converged")
     k.add_argument("--displacement", action="store_true", help="also write each frame's 3D displacement field")
+    k.add_argument("--no-predict", action="store_true",
+                   help="start each frame from the last estimate, not from the frame's per-organ motion applied to every particle")
     k.add_argument("--rrd", default=None, help="also write a Rerun recording: the cine frames in their 3D planes beside the estimate")
 
     c = sub.add_parser("make-cine", help="a synthetic cine series with its 3D truth (for tests and benchmarks)",
@@ -175,13 +177,15 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--thickness-mm", type=float, default=6.0)
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--particle-step", type=int, default=1)
-    c.add_argument("--format", default="nifti", choices=["nifti", "dicom"], help="frames as NIfTI (one voxel thick) or 2D DICOM")
+    c.add_argument("--pixel-mm", type=float, default=2.0, help="in-plane pixel size of the frames (mm; an MR-Linac cine: 1.5-2.5)")
+    c.add_argument("--format", default="dicom", choices=["dicom", "nifti"], help="frames as 2D MR DICOM (default) or NIfTI (one voxel thick)")
     c.add_argument("--out", required=True)
 
     e = sub.add_parser("evaluate-track", help="score a track against a synthetic series' truth")
     e.add_argument("--track", required=True)
     e.add_argument("--truth", required=True)
     e.add_argument("--json", default=None)
+    e.add_argument("--png", default=None, help="plot of the pancreas error against frame for each method (default: beside --json)")
 
     v = sub.add_parser("view", help="open, summarise or picture a Rerun recording")
     v.add_argument("rrd")
@@ -378,7 +382,7 @@ def cmd_track(a) -> int:
     if not os.path.isdir(parent):
         raise InputError(f"output folder {parent} for --out does not exist")
     cfg = TrackerConfig(organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
-                        solver=SolverConfig(device=a.device))
+                        predict=not a.no_predict, solver=SolverConfig(device=a.device))
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
           f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes", file=sys.stderr)
@@ -413,7 +417,7 @@ def cmd_make_cine(a) -> int:
     for p in planes:
         if p not in ("sagittal", "coronal", "axial"):
             raise InputError(f"unknown plane {p!r}; use sagittal, coronal or axial")
-    make_cine(case, a.out, planes=planes, frames=a.frames, fps=a.fps, thickness_mm=a.thickness_mm, seed=a.seed,
+    make_cine(case, a.out, planes=planes, frames=a.frames, fps=a.fps, thickness_mm=a.thickness_mm, pixel_mm=a.pixel_mm, seed=a.seed,
               particle_step=a.particle_step, fmt=a.format, progress=lambda t: print(t, flush=True))
     print(f"wrote {a.out}/cine and {a.out}/truth")
     return 0
@@ -430,6 +434,12 @@ def cmd_evaluate_track(a) -> int:
     print(f"latency: median {ev['latency_s']['median']:.2f} s, p95 {ev['latency_s']['p95']:.2f} s")
     if a.json:
         write_json_atomic(a.json, ev)
+    png = a.png or (os.path.splitext(a.json)[0] + ".png" if a.json else None)
+    if png:
+        from .experiment.cine_series import plot_track_errors
+
+        plot_track_errors(ev, png)
+        print(f"wrote {png}")
     return 0
 
 

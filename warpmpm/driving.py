@@ -363,6 +363,22 @@ class SliceDrivenEstimator:
     def positions_mm(self) -> np.ndarray:
         return self.state.positions_mm()
 
+    def move_to(self, positions_mm: np.ndarray) -> None:
+        """Place every particle at ``positions_mm`` (N, 3), at rest, keeping its deformation gradient: a
+        kinematic prediction the next :meth:`estimate` corrects (the tracker's predictor). The move itself
+        stores no strain, so it must be a motion the tissue makes without deforming (per-organ translation,
+        rotation), or the physics will not see it."""
+        positions_mm = np.asarray(positions_mm, dtype=np.float64)
+        if positions_mm.shape != (self.particles.n, 3) or not np.all(np.isfinite(positions_mm)):
+            raise InputError(f"predicted positions must be finite with shape ({self.particles.n}, 3), got {positions_mm.shape}")
+        lo = self.mpm.origin_mm + (self.mpm.config.wall_cells + 1) * self.mpm.dx_mm
+        hi = self.mpm.origin_mm + (np.asarray(self.mpm.grid_shape) - self.mpm.config.wall_cells - 2) * self.mpm.dx_mm
+        if np.any(positions_mm < lo) or np.any(positions_mm > hi):
+            raise InputError("predicted positions lie outside the simulation grid; build the estimator with a larger reach")
+        self.state.x.assign(self.mpm.to_local_m(positions_mm))
+        self.state.v.zero_()
+        self.state.C.zero_()
+
     def _steps_run(self, n_residuals: int) -> int:
         """Steps actually run: whole batches of ``sync_every`` steps."""
         k = self.sync_every

@@ -3,8 +3,9 @@
 For each frame, in acquisition order: the frame is registered against the last frame of the same plane
 (the first against the planning image resampled on that plane), organ by organ
 (:func:`warpmpm.registration.register_slice_organs`, the organ footprints from the current estimate's
-label map); the particles lying within the frame's slice thickness of its plane take that motion in the
-plane (the through-plane part is left to the physics or to another plane); the multi-organ MPM model
+label map); the particles lying within the frame's slice thickness of its plane *in the current
+estimate* (not at planning: organs move through a plane as they breathe) take that motion in the plane
+(the through-plane part is left to the physics or to another plane); the multi-organ MPM model
 moves from the previous frame's state to the new equilibrium. The ground truth, when there is one, is
 never read here.
 
@@ -51,6 +52,13 @@ class TrackerConfig:
     """The MPM solver's settings."""
     margin_mm: float = 40.0
     """Room around the organs for the motion of a whole series (the grid is built once)."""
+    predict: bool = True
+    """Start each frame from a prediction: every particle moved by the in-plane motion its organ shows on the
+    frame (the ``propagate`` baseline's step), then the physics corrects it from there. Without it the frame
+    starts from the last frame's estimate and the body lags the slice until it has settled."""
+    reach_mm: float = 15.0
+    """How far (mm) a particle may start from a plane and still come onto it during the series: those within
+    half the slice thickness plus this of a plane at planning are the candidates checked every frame."""
 
 
 @dataclass
@@ -74,15 +82,17 @@ class Tracker:
         self.model: ParticleModel = build_model(case, tuple(wanted), sampling_step=cfg.particle_step)
         m = self.model
         self.label_values = {o: case.label_map[o] for o in m.organs}
-        self.plane_of: dict[int, np.ndarray] = {}
+        candidates = []
+        seen = set()
         for f in frames:
-            if f.plane in self.plane_of:
+            if f.plane in seen:
                 continue
-            on = np.nonzero(np.abs(f.distance_mm(m.positions_mm)) <= f.thickness_mm / 2)[0]
-            if len(on) == 0:
+            seen.add(f.plane)
+            if not np.any(np.abs(f.distance_mm(m.positions_mm)) <= f.thickness_mm / 2):
                 raise InputError(f"cine frame {f.path}: its plane does not cross the model's organs {m.letters}")
-            self.plane_of[f.plane] = on
-        self.driven = np.unique(np.concatenate(list(self.plane_of.values())))
+            candidates.append(np.nonzero(np.abs(f.distance_mm(m.positions_mm)) <= f.thickness_mm / 2 + cfg.reach_mm)[0])
+        #: every particle that may lie on a plane during the series (each frame drives those on it now)
+        self.driven = np.unique(np.concatenate(candidates))
         reach = [m.positions_mm + s * cfg.margin_mm * np.eye(3)[k] for k in range(3) for s in (-0.5, 0.5)]
         self.estimator = SliceDrivenEstimator(m, driven=self.driven, solver_config=cfg.solver, extra_points_mm=np.vstack(reach),
                                               convergence=ConvergenceConfig(max_steps=cfg.max_steps))
@@ -106,6 +116,11 @@ class Tracker:
         if not np.any(sitk.GetArrayViewFromImage(whole)):
             raise InputError(f"cine frame {frame.path} shows none of the organs {self.model.letters}")
         return whole, own
+
+    def on_plane(self, frame: CineFrame, positions_mm: np.ndarray) -> np.ndarray:
+        """Which driven candidates lie within half the slice thickness of ``frame``'s plane at ``positions_mm``
+        (all particles' positions, N x 3): a mask over :attr:`driven`."""
+        return np.abs(frame.distance_mm(positions_mm[self.driven])) <= frame.thickness_mm / 2
 
     def step(self, n: int, frame: CineFrame) -> TrackedFrame:
         """Estimate one frame (from the previous one's state)."""
@@ -131,10 +146,16 @@ class Tracker:
 
         targets = x[self.driven].copy()
         axes = np.zeros((len(self.driven), 3, 3))
-        on = np.isin(self.driven, self.plane_of[frame.plane])
+        on = self.on_plane(frame, x)
+        if not on.any():
+            raise InputError(f"cine frame {frame.path}: no particle of the current estimate lies on its plane "
+                             f"(the organs have moved out of it)")
         targets[on] = moved(x[self.driven[on]], organ_of[self.driven[on]])
+        reg_s = whole.wall_s + sum(r.wall_s for r in per_organ.values())
         axes[on] = frame.projector
         self.propagated = moved(self.propagated, organ_of)
+        if self.config.predict:
+            self.estimator.move_to(moved(x, organ_of))
         res = self.estimator.estimate(targets, axes=axes)
         self.last_frame[frame.plane] = frame
         self.labels_now = particle_label_map(m, res.positions_mm, self.label_values)
@@ -143,7 +164,7 @@ class Tracker:
         disp = np.linalg.norm(res.positions_mm - m.positions_mm, axis=1)
         row = {"frame": n, "time_s": round(frame.time_s, 4), "plane": frame.plane, "file": os.path.basename(frame.path),
                "steps": res.steps, "converged": res.converged, "reason": res.reason, "wall_s": res.wall_s,
-               "rms_residual_mm": res.final_rms_mm, "registration_ms": 1e3 * (whole.wall_s + sum(r.wall_s for r in per_organ.values())),
+               "rms_residual_mm": res.final_rms_mm, "registration_ms": 1e3 * reg_s,
                "pancreas_x_mm": c[0], "pancreas_y_mm": c[1], "pancreas_z_mm": c[2],
                "pancreas_shift_mm": float(np.linalg.norm(c - m.positions_mm[pan].mean(0)))}
         for o in ORGANS:

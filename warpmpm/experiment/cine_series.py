@@ -5,9 +5,10 @@ anterior-posterior, a different amplitude per organ and per cycle) with a slow a
 duodenum (or stomach) toward the pancreas; the pancreas itself is not driven, it moves through contact.
 Each frame's truth is simulated from the planning state with perturbed materials (as the GT protocols
 do); the frame is that state's image (the planning image warped by the truth) on a sagittal and/or
-coronal plane through the pancreas, averaged over the slice thickness (partial volume), with noise,
-written one voxel thick in its 3D geometry (NIfTI). The truth goes to ``truth/``, the frames to
-``cine/``; the tracker never reads ``truth/``.
+coronal plane through the pancreas, averaged over the slice thickness (partial volume), resampled to
+the scanner's in-plane pixel (2 mm by default), with noise, written as a 2D MR DICOM file (default) or a
+NIfTI image one voxel thick in its 3D geometry. The truth goes to ``truth/``, the frames to ``cine/``;
+the tracker never reads ``truth/``.
 
 :func:`evaluate_track` scores a tracker's output against that truth beside ``initial`` (no motion) and
 ``propagate`` (each frame's slice motion copied to every particle).
@@ -34,18 +35,22 @@ BREATHING_MM = {"pancreas": (10.0, 3.0), "stomach": (12.0, 4.0), "duodenum": (10
 
 
 def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8, fps: float = 4.0, period_s: float = 4.0,
-              thickness_mm: float = 6.0, noise_sd: float = 0.02, push_mm: float = 4.0, particle_step: int = 1, seed: int = 0,
-              fmt: str = "nifti", progress=None) -> dict:
+              thickness_mm: float = 6.0, pixel_mm: float | None = 2.0, noise_sd: float = 0.02, push_mm: float = 4.0,
+              particle_step: int = 1, seed: int = 0, fmt: str = "dicom", progress=None) -> dict:
     """Write ``out_dir/cine`` (frames) and ``out_dir/truth`` (positions, label maps) for ``case``; returns the
-    series' parameters (also in ``truth/series.json``). Frames cycle through ``planes``; ``fmt``: ``nifti``
-    (one voxel thick) or ``dicom`` (2D MR DICOM, 16-bit, with position, orientation, acquisition time,
-    instance number and slice thickness)."""
+    series' parameters (also in ``truth/series.json``). Frames cycle through ``planes``; each is averaged over
+    ``thickness_mm`` (partial volume) and resampled to ``pixel_mm`` square pixels in plane (an MR-Linac's
+    cine: 1.5-2.5 mm; None keeps the planning grid's). ``fmt``: ``dicom`` (default: 2D MR DICOM, 16-bit, with
+    position, orientation, acquisition time, instance number and slice thickness) or ``nifti`` (one voxel
+    thick)."""
     if fmt not in ("nifti", "dicom"):
         raise InputError(f"unknown frame format {fmt!r}; use nifti or dicom")
     if case.image is None:
         raise InputError("a synthetic cine series needs the planning image")
     if frames < 1 or fps <= 0 or period_s <= 0 or thickness_mm <= 0:
         raise InputError("frames must be >= 1, fps, period and thickness > 0")
+    if pixel_mm is not None and not (math.isfinite(pixel_mm) and 0.2 <= pixel_mm <= 10.0):
+        raise InputError(f"cine pixel size must be 0.2-10 mm, got {pixel_mm}")
     present = tuple(o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o]))
     model = build_model(case, present, sampling_step=particle_step)
     neighbours = [o for o in present if o != "pancreas"]
@@ -79,7 +84,7 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
         all_truth.append(pos)
         warped = warp_image(case, model, pos)
         orientation = planes[k % len(planes)]
-        frame = _frame_image(warped, case, orientation, pan_c, thickness_mm, noise_sd * float(np.ptp(case.image)), rng)
+        frame = _frame_image(warped, case, orientation, pan_c, thickness_mm, noise_sd * float(np.ptp(case.image)), rng, pixel_mm)
         if fmt == "nifti":
             sitk.WriteImage(frame, os.path.join(cine, f"frame_{k:04d}_{orientation}.nii.gz"))
         else:
@@ -94,6 +99,7 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
     np.savez_compressed(os.path.join(truth, "positions.npz"), planning_mm=model.positions_mm, organ_index=model.organ_index,
                         organs=np.asarray(model.organs), truth_mm=np.asarray(all_truth))
     params = {"frames": frames, "fps": fps, "period_s": period_s, "planes": list(planes), "thickness_mm": thickness_mm,
+              "pixel_mm": pixel_mm, "format": fmt,
               "noise_sd": noise_sd, "push_mm": push_mm, "pusher": pusher, "particle_step": particle_step, "seed": seed,
               "breathing_mm": BREATHING_MM, "cycle_amplitude": cycle_amp.tolist(), "materials": {
                   o: {"lam_pa": m.lam_pa, "mu_pa": m.mu_pa} for o, m in perturb_materials(model.materials, seed + 7).items()}}
@@ -125,8 +131,10 @@ def _write_dicom_frame(frame: sitk.Image, path: str, k: int, t: float, thickness
 
 
 def _frame_image(volume: np.ndarray, case: Case, orientation: str, through_mm: np.ndarray, thickness_mm: float, noise: float,
-                 rng) -> sitk.Image:
-    """The plane of ``orientation`` through ``through_mm``, averaged over ``thickness_mm``, one voxel thick."""
+                 rng, pixel_mm: float | None = None) -> sitk.Image:
+    """The plane of ``orientation`` through ``through_mm``, averaged over ``thickness_mm``, one voxel thick,
+    resampled (linear) to ``pixel_mm`` pixels in plane over the same field of view; noise added last, at the
+    scanner's pixels."""
     g = case.geometry
     a = orientation_image_axis(g, orientation)
     k = int(np.rint(g.world_to_index(through_mm[None, :])[0][a]))
@@ -136,7 +144,6 @@ def _frame_image(volume: np.ndarray, case: Case, orientation: str, through_mm: n
     sl = [slice(None)] * 3
     sl[np_axis] = slice(lo, hi)
     plane = volume[tuple(sl)].mean(axis=np_axis, keepdims=True).astype(np.float32)
-    plane += rng.normal(0.0, noise, plane.shape).astype(np.float32)
     start = [0, 0, 0]
     start[a] = (lo + hi - 1) / 2.0
     origin = g.index_to_world(np.asarray(start, dtype=np.float64)[None, :])[0]
@@ -146,7 +153,20 @@ def _frame_image(volume: np.ndarray, case: Case, orientation: str, through_mm: n
     img.SetOrigin(tuple(float(v) for v in origin))
     img.SetSpacing(tuple(spacing))
     img.SetDirection(g.direction)
-    return img
+    if pixel_mm is not None:
+        size, sp = list(img.GetSize()), list(spacing)
+        new_size = [1 if ax == a else max(2, int(round(size[ax] * sp[ax] / pixel_mm))) for ax in range(3)]
+        new_sp = [sp[ax] if ax == a else size[ax] * sp[ax] / new_size[ax] for ax in range(3)]
+        # the same field of view: the first pixel's centre moves by half the change of pixel size
+        shift = np.array([0.0 if ax == a else (new_sp[ax] - sp[ax]) / 2 for ax in range(3)])
+        new_origin = np.asarray(img.GetOrigin()) + np.asarray(g.direction).reshape(3, 3) @ shift
+        img = sitk.Resample(img, new_size, sitk.Transform(), sitk.sitkLinear, tuple(float(v) for v in new_origin),
+                            tuple(float(v) for v in new_sp), img.GetDirection(), 0.0, sitk.sitkFloat32)
+    arr = sitk.GetArrayFromImage(img)
+    arr += rng.normal(0.0, noise, arr.shape).astype(np.float32)
+    out = sitk.GetImageFromArray(arr)
+    out.CopyInformation(img)
+    return out
 
 
 def evaluate_track(track_dir: str, truth_dir: str) -> dict:
@@ -185,3 +205,40 @@ def evaluate_track(track_dir: str, truth_dir: str) -> dict:
                for name in methods}
     lat = np.array([f["latency_s"] for f in frames[1:]] or [frames[0]["latency_s"]])
     return {"results": results, "latency_s": {"median": float(np.median(lat)), "p95": float(np.percentile(lat, 95))}, "frames": frames}
+
+
+def plot_track_errors(evaluation: dict, path: str) -> None:
+    """PNG of the pancreas error (mean, with p95 dashed) against frame for the estimate and the baselines of
+    an :func:`evaluate_track` result, written under a temporary name and renamed (no half-written file)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frames = evaluation["frames"]
+    if not frames:
+        raise InputError("the evaluation holds no frame to plot")
+    x = [f["frame"] for f in frames]
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=110)
+    for name, colour in (("estimate", "tab:blue"), ("propagate", "tab:orange"), ("initial", "tab:grey")):
+        if name not in frames[0]:
+            continue
+        mean = evaluation["results"][name]["error_mm"]
+        ax.plot(x, [f[name]["error_mm"] for f in frames], "-o", ms=3, color=colour, label=f"{name} (mean {mean:.2f} mm)")
+        ax.plot(x, [f[name]["p95_mm"] for f in frames], "--", color=colour, alpha=0.5, lw=1)
+    ax.set_xlabel("frame")
+    ax.set_ylabel("pancreas error (mm); dashed: p95")
+    lat = evaluation.get("latency_s", {})
+    ax.set_title(f"tracking error per frame (latency median {lat.get('median', float('nan')):.2f} s, "
+                 f"p95 {lat.get('p95', float('nan')):.2f} s)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    tmp = path + ".tmp.png"
+    try:
+        fig.savefig(tmp)
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.remove(tmp)
