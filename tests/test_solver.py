@@ -66,7 +66,10 @@ def test_uniaxial_stretch_gives_youngs_modulus(organ):
     E = mat.youngs_modulus_pa
     m = MPMModel(pm, SolverConfig(**CPU))
     s = MPMSolver(m)
-    stress = 2e-3 * E  # small strain
+    # 1 % strain: small, yet 1,400 um of stretch over the measured span, so the particle positions' ~1 um of
+    # wave-averaging noise (the time integral of the particle velocities differs from that of the velocity
+    # gradient by ~5e-5 strain, whatever the load) stays under 0.5 % of it (at 0.2 % strain it was 2.5 %)
+    stress = 1e-2 * E
     area = (ny * h * 1e-3) ** 2
     ends = (pm.voxel_ijk[:, 0] == 0, pm.voxel_ijk[:, 0] == nx - 1)
     f = np.zeros((pm.n, 3), dtype=np.float32)
@@ -82,7 +85,7 @@ def test_uniaxial_stretch_gives_youngs_modulus(organ):
     L0 = (i2 - i1) * h
     L = x[pm.voxel_ijk[:, 0] == i2, 0].mean() - x[pm.voxel_ijk[:, 0] == i1, 0].mean()
     strain = (L - L0) / L0
-    assert stress / strain == pytest.approx(E, rel=0.02)  # measured: within 1.1 % (pancreas), 0.8 % (duodenum)
+    assert stress / strain == pytest.approx(E, rel=0.02)  # measured: within 1.2 % (pancreas and duodenum)
 
 
 def test_contact_no_interpenetration_soft_deforms_more():
@@ -162,7 +165,10 @@ def test_extreme_deformations_stay_finite_and_recover(F0):
         assert max(np.abs(r - R0).max() for r in R) < 0.1
 
 
-def test_forces_at_clamp_limit_stay_finite():
+def test_forces_at_clamp_limit_stay_finite_and_do_not_wind_up():
+    """A 25 mm jump: the command saturates at the clamp for the first ~40 steps. With anti-windup the
+    integral does not grow meanwhile, so the layer does not overshoot (measured: RMS error 0.24 mm at step
+    100, converged at step 287; without anti-windup 3.9 mm of overshoot at step 100, not converged in 400)."""
     from warpmpm.driving import DriveConfig, SliceDrivenEstimator, ConvergenceConfig
 
     pm = block_model((6, 6, 6), (2, 2, 2), "pancreas")
@@ -170,13 +176,11 @@ def test_forces_at_clamp_limit_stay_finite():
     est = SliceDrivenEstimator(pm, driven=top, solver_config=SolverConfig(margin_mm=40, **CPU),
                                drive_config=DriveConfig(), convergence=ConvergenceConfig(max_steps=400, th_s=50))
     targets = pm.positions_mm[top] + np.array([0, 0, 25.0])  # far target: the clamp is active
-    with pytest.warns(RuntimeWarning):
-        res = est.estimate(targets)
-    assert np.all(np.isfinite(res.positions_mm))
-    # the clamped force still pulls the driven layer toward its target (the integral may overshoot it a little)
+    res = est.estimate(targets)
+    assert np.all(np.isfinite(res.positions_mm)) and res.converged
     rise = (res.positions_mm[top] - pm.positions_mm[top])[:, 2].mean()
-    assert 3.0 < rise < 27.5
-    assert res.rms_history_mm[-1] < 0.9 * res.rms_history_mm[0]
+    assert abs(rise - 25.0) < 0.5
+    assert res.rms_history_mm[100:].max() < 1.0
 
 
 def test_dt_above_limit_refused():

@@ -253,7 +253,8 @@ class MPMModel:
 
 class State:
     """Particle state: position ``x`` (grid-local m), velocity ``v`` (m/s), affine ``C`` (1/s),
-    deformation gradient ``F``."""
+    deformation gradient ``F``; ``x_carry`` (m) is the part of the motion below float32 resolution at
+    ``x`` that the next step adds back (compensated summation, :func:`warpmpm.kernels.g2p`)."""
 
     def __init__(self, model: MPMModel, positions_mm: np.ndarray):
         d = model.device
@@ -262,6 +263,7 @@ class State:
         if positions_mm.shape != (n, 3):
             raise InputError(f"positions must have shape ({n}, 3), got {positions_mm.shape}")
         self.x = wp.array(model.to_local_m(positions_mm), dtype=wp.vec3, device=d)
+        self.x_carry = wp.zeros(n, dtype=wp.vec3, device=d)
         self.v = wp.zeros(n, dtype=wp.vec3, device=d)
         self.C = wp.zeros(n, dtype=wp.mat33, device=d)
         self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=d)
@@ -271,7 +273,7 @@ class State:
         return self._model.to_world_mm(self.x.numpy())
 
     def copy_from(self, other: "State") -> None:
-        for name in ("x", "v", "C", "F"):
+        for name in ("x", "x_carry", "v", "C", "F"):
             wp.copy(getattr(self, name), getattr(other, name))
 
     def numpy(self) -> dict[str, np.ndarray]:
@@ -312,8 +314,9 @@ class MPMSolver:
         wp.launch(kernels.p2g, m.n, [state_in.x, state_in.v, state_in.C, state_in.F, force, m.mass, m.vol0, m.mu, m.lam, self._dx, dt,
                                      self.grid_m, self.grid_mv], device=d)
         wp.launch(kernels.grid_update, m.grid_shape, [self.grid_m, self.grid_mv, damping, m.config.wall_cells, self.grid_v], device=d)
-        wp.launch(kernels.g2p, m.n, [self.grid_v, state_in.x, state_in.F, self._dx, dt, self._x_min, self._x_max, self.step_count,
-                                     state_out.x, state_out.v, state_out.C, state_out.F, self.status], device=d)
+        wp.launch(kernels.g2p, m.n, [self.grid_v, state_in.x, state_in.x_carry, state_in.F, self._dx, dt, self._x_min, self._x_max,
+                                     self.step_count, state_out.x, state_out.x_carry, state_out.v, state_out.C, state_out.F,
+                                     self.status], device=d)
         self.step_count += 1
         if check and self.check_every and self.step_count % self.check_every == 0:
             self.check()
