@@ -3,6 +3,8 @@ estimate and baselines of one condition on a prepared case and its GT, reused by
 
 from __future__ import annotations
 
+import math
+
 import time
 import warnings
 from dataclasses import replace
@@ -164,7 +166,10 @@ def run_case(cfg: CaseConfig, recorder: Recorder | None = None, progress: Progre
         progress.say(size_report(prep, cfg))
         progress.say(f"ground truth ({cfg.protocol}, deformation {cfg.deformation}): simulating...")
         gt = make_ground_truth(prep, cfg, callback=lambda est, step, rel, rms: progress.step("ground truth", step, rms))
-        progress.done(f"ground truth: {gt.steps} steps in {gt.wall_s:.1f} s")
+        moving = float(gt.params.get("gt_body_motion_mm", float("nan")))
+        unsettled = not gt.params.get("gt_settled", True) and math.isfinite(moving)
+        progress.done(f"ground truth: {gt.steps} steps in {gt.wall_s:.1f} s" + (
+            f" (its body still moved {moving:.2f} mm per 100 steps when it stopped: a transient, not an equilibrium)" if unsettled else ""))
         out = run_prepared(prep, gt, cfg, recorder, progress)
         out.total_wall_s = time.perf_counter() - t0
         ok = True
