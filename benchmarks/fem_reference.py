@@ -1,13 +1,16 @@
 """The MPM equilibrium against an independent finite-element solve (issue 17): one axial slice of a block
 scaled 1.05, rotated 3 degrees or sheared 3 degrees in plane, everything else free.
 
-    python benchmarks/fem_reference.py [--size 10,10,10]
+    python benchmarks/fem_reference.py [--size 20,20,21] [--ppc-sweep]
 
-Scenes: a soft (pancreas) block and a bonded pancreas + left kidney block, 2 mm particles. The FEM
+Scenes: a soft (pancreas) block, a bonded pancreas + left kidney block and a pancreas + duodenum block
+(~3000x stiffer), 2 mm particles. The FEM
 (:mod:`warpmpm.fem`: trilinear hexahedra on the particles, selective reduced integration, the same Lame
 parameters, the driven slice a Dirichlet condition) is the reference; the figure is the relative L2
-difference of the non-driven particles' displacement, at the default stopping rule and once the whole
-body has settled (``wait_settled``), at the default damping and at damping 1.
+difference of the non-driven particles' displacement, at the default stopping rule, once the whole
+body has settled (``wait_settled``) at the default damping and at damping 1, and run on to a fixed 6,000
+steps (does the answer drift?). ``--ppc-sweep``: the scaled soft block, settled at damping 1, for 1, 2, 4
+and 8 particles per cell, with the error by distance from the slice (in-plane and through-plane parts).
 """
 
 import argparse
@@ -37,7 +40,8 @@ LOADS = {"scale 1.05": InPlaneAffine(np.eye(2) * 1.05),
          "shear 3 deg": InPlaneAffine([[1.0, math.tan(A)], [0.0, 1.0]])}
 RULES = [("default stop, damping 4", SolverConfig(device="cpu"), ConvergenceConfig()),
          ("settled, damping 4", SolverConfig(device="cpu"), ConvergenceConfig(wait_settled=True, max_steps=20000)),
-         ("settled, damping 1", SolverConfig(device="cpu", damping_factor=1.0), ConvergenceConfig(wait_settled=True, max_steps=20000))]
+         ("settled, damping 1", SolverConfig(device="cpu", damping_factor=1.0), ConvergenceConfig(wait_settled=True, max_steps=20000)),
+         ("6,000 steps, damping 1", SolverConfig(device="cpu", damping_factor=1.0), ConvergenceConfig(th_v=1e-12, th_d=12, max_steps=6000))]
 
 
 def scenes(size):
@@ -45,7 +49,9 @@ def scenes(size):
     soft = block_model((nx, ny, nz), (2.0, 2.0, 2.0), "pancreas")
     half = block_model((nx // 2, ny, nz), (2.0, 2.0, 2.0), "pancreas")
     kidney = block_model((nx - nx // 2, ny, nz), (2.0, 2.0, 2.0), "left_kidney", origin_mm=(2.0 * (nx // 2), 0.0, 0.0))
-    return {"pancreas block": soft, "pancreas + kidney (bonded)": merge_models(half, kidney)}
+    duodenum = block_model((nx - nx // 2, ny, nz), (2.0, 2.0, 2.0), "duodenum", origin_mm=(2.0 * (nx // 2), 0.0, 0.0))
+    return {"pancreas block": soft, "pancreas + kidney (bonded)": merge_models(half, kidney),
+            "pancreas + duodenum (~3000x)": merge_models(half, duodenum)}
 
 
 def compare(model, load, rule):
@@ -62,17 +68,26 @@ def compare(model, load, rule):
     wall = time.perf_counter() - t0
     u = r.positions_mm - model.positions_mm
     rel = float(np.linalg.norm(u[free] - u_fem[free]) / np.linalg.norm(u_fem[free]))
-    return {"rel_l2": rel, "max_error_mm": float(np.abs(u[free] - u_fem[free]).max()), "steps": r.steps, "wall_s": wall,
-            "settled": r.settled}
+    e = u - u_fem
+    dist = np.abs(model.voxel_ijk[:, 2] - k)
+    by_distance = {int(dd): {"in_plane_mm": float(np.linalg.norm(e[dist == dd][:, :2], axis=1).mean()),
+                             "through_plane_mm": float(np.abs(e[dist == dd][:, 2]).mean()),
+                             "fem_mm": float(np.linalg.norm(u_fem[dist == dd], axis=1).mean())} for dd in np.unique(dist)}
+    return {"rel_l2": rel, "max_error_mm": float(np.abs(u[free] - u_fem[free]).max()),
+            "mean_error_mm": float(np.linalg.norm(e[free], axis=1).mean()), "steps": r.steps, "wall_s": wall,
+            "settled": r.settled, "dx_mm": est.mpm.dx_mm, "by_layer_distance": by_distance}
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--size", default="10,10,10", help="block size in particles (x, y, z)")
+    p.add_argument("--size", default="20,20,21", help="block size in particles (x, y, z)")
+    p.add_argument("--ppc-sweep", action="store_true", help="only the particles-per-cell sweep of the scaled soft block")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR
     warnings.simplefilter("ignore")
     size = tuple(int(v) for v in a.size.split(","))
+    if a.ppc_sweep:
+        return ppc_sweep(size)
     rows = []
     print("| scene | load | " + " | ".join(r[0] for r in RULES) + " |")
     print("|---|---|" + "---|" * len(RULES))
@@ -84,6 +99,24 @@ def main(argv=None):
             cells = " | ".join(f"{100 * r['rel_l2']:.0f} % ({r['steps']} steps)" for r in res)
             print(f"| {sname} | {lname} | {cells} |", flush=True)
     raw.save("fem_reference", rows)
+
+
+def ppc_sweep(size):
+    model = scenes(size)["pancreas block"]
+    rows = []
+    print("| particles per cell | cell mm | settled at step | rel. L2 | mean error mm | 2 mm from the slice: in-plane / "
+          "through-plane mm | far half: through-plane mm | FEM there mm |")
+    print("|---|---|---|---|---|---|---|---|")
+    for ppc in (1.0, 2.0, 4.0, 8.0):
+        rule = ("settled", SolverConfig(device="cpu", damping_factor=1.0, particles_per_cell=ppc),
+                ConvergenceConfig(wait_settled=True, max_steps=20000))
+        r = compare(model, LOADS["scale 1.05"], rule)
+        near, far = r["by_layer_distance"][1], r["by_layer_distance"][max(r["by_layer_distance"])]
+        rows.append({"particles_per_cell": ppc, **r})
+        print(f"| {ppc:g} | {r['dx_mm']:.2f} | {r['steps']} | {100 * r['rel_l2']:.1f} % | {r['mean_error_mm']:.3f} | "
+              f"{near['in_plane_mm']:.3f} / {near['through_plane_mm']:.3f} | {far['through_plane_mm']:.3f} | {far['fem_mm']:.3f} |",
+              flush=True)
+    raw.save("fem_reference_ppc", rows)
 
 
 if __name__ == "__main__":
