@@ -48,7 +48,7 @@ def bytes_per_particle(m: MPMModel, s: MPMSolver, states) -> float:
 
 
 def time_warp(pm, device: str, steps: int):
-    m = MPMModel(pm, SolverConfig(device=device, check_every=0))
+    m = MPMModel(pm, SolverConfig(device=device, check_every=10**9))  # no NaN read-back inside the timed steps
     s = MPMSolver(m)
     a, b = m.state(), m.state()
     F0 = np.diag([0.95, 1.0, 1.0]).astype(np.float32)
