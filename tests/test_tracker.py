@@ -178,3 +178,27 @@ def test_a_translated_frame_moves_the_whole_model_with_it(tmp_path, tiny_case, p
         assert lag < 0.6  # measured 0.37 mm
     else:
         assert lag > 1.0  # measured 2.9 mm: the body has not followed yet
+
+
+def test_interleaved_planes_do_not_count_the_shared_motion_twice(tmp_path, tiny_case):
+    """Sagittal and coronal planes both see the superior-inferior direction. The organs move 3 mm SI and stay
+    there: a sagittal frame, then a coronal one, each showing the 3 mm. The coronal frame's registration
+    (against the planning image: its plane's first frame) measures 3 mm since planning, which the model has
+    already made on the sagittal frame: the pancreas must end 3 mm from planning, not 6."""
+    from warpmpm.solver import SolverConfig
+    from warpmpm.tracker import Tracker, TrackerConfig
+
+    pan = np.nonzero(tiny_case.organ_mask("pancreas"))  # numpy order (z, y, x)
+    k, j, i = (int(np.median(a)) for a in pan)
+    img = tiny_case.intensity_image()
+    shift = np.array([0.0, 0.0, 3.0])
+    os.makedirs(tmp_path / "cine")
+    for name, frame in (("f0_sag.nii.gz", img[i:i + 1, :, :]), ("f1_cor.nii.gz", img[:, j:j + 1, :])):
+        frame.SetOrigin(tuple(np.asarray(frame.GetOrigin()) + shift))
+        sitk.WriteImage(frame, str(tmp_path / "cine" / name))
+    frames = read_cine(str(tmp_path / "cine"))
+    assert [f.plane for f in frames] == [0, 1]
+    tr = Tracker(tiny_case, frames, TrackerConfig(solver=SolverConfig(device="cpu"), max_steps=800))
+    rows = tr.run(str(tmp_path / "out"))
+    moved = [float(r["pancreas_z_mm"]) - tr.model.positions_mm[tr.model.organ_slice("pancreas"), 2].mean() for r in rows]
+    assert abs(moved[0] - 3.0) < 1.0 and abs(moved[1] - 3.0) < 1.0  # measured 2.7 and 2.8 (counted twice: 5.5)

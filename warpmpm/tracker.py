@@ -100,9 +100,19 @@ class Tracker:
         self.last_frame: dict[int, CineFrame] = {}
         self.labels_now = case.labels.copy()
         self.propagated = m.positions_mm.copy()  # the baseline: each frame's slice motion copied to every particle
+        # per plane, the estimate (and the baseline) when that plane was last imaged, and its label map: a frame's
+        # registration measures the motion since then, so that is what it moves (with interleaved planes the
+        # other plane's frames have moved the model meanwhile, and applying the motion to the current state
+        # would count the shared direction twice)
+        self.plane_positions: dict[int, np.ndarray] = {}
+        self.plane_propagated: dict[int, np.ndarray] = {}
+        self.plane_labels: dict[int, np.ndarray] = {}
 
     def _organ_masks(self, frame: CineFrame) -> tuple[sitk.Image, dict]:
-        img = self.case.geometry.apply_to(sitk.GetImageFromArray(self.labels_now.astype(np.int32)))
+        """The organs' footprints on ``frame``'s plane as they were when the plane was last imaged (the stored
+        frame's content): the whole (dilated 6 mm) and each organ's own."""
+        labels = self.plane_labels.get(frame.plane, self.case.labels)
+        img = self.case.geometry.apply_to(sitk.GetImageFromArray(labels.astype(np.int32)))
         lab = frame.slice_2d(img, sitk.sitkNearestNeighbor)
         arr = sitk.GetArrayFromImage(lab)
         own = {}
@@ -135,14 +145,16 @@ class Tracker:
         x = self.estimator.positions_mm()
         organ_of = np.asarray(m.organs)[m.organ_index]
 
-        def moved(pos, organs_of):
-            uv = frame.in_plane(pos)
+        def observed(now, then):
+            """``now`` with its in-plane components replaced by where the frame's per-organ motion takes ``then``
+            (the positions when the plane was last imaged); the through-plane components are kept."""
+            uv = frame.in_plane(then)
             out = uv @ whole.affine.A.T + whole.affine.t_mm
             for o, r in per_organ.items():
-                sel = organs_of == o
+                sel = organ_of == o
                 out[sel] = uv[sel] @ r.affine.A.T + r.affine.t_mm
-            d = out - uv
-            return pos + d[:, :1] * frame.e_u + d[:, 1:] * frame.e_v
+            d = out - frame.in_plane(now)
+            return now + d[:, :1] * frame.e_u + d[:, 1:] * frame.e_v
 
         targets = x[self.driven].copy()
         axes = np.zeros((len(self.driven), 3, 3))
@@ -150,15 +162,19 @@ class Tracker:
         if not on.any():
             raise InputError(f"cine frame {frame.path}: no particle of the current estimate lies on its plane "
                              f"(the organs have moved out of it)")
-        targets[on] = moved(x[self.driven[on]], organ_of[self.driven[on]])
+        seen = observed(x, self.plane_positions.get(frame.plane, m.positions_mm))
+        targets[on] = seen[self.driven[on]]
         reg_s = whole.wall_s + sum(r.wall_s for r in per_organ.values())
         axes[on] = frame.projector
-        self.propagated = moved(self.propagated, organ_of)
+        self.propagated = observed(self.propagated, self.plane_propagated.get(frame.plane, m.positions_mm))
         if self.config.predict:
-            self.estimator.move_to(moved(x, organ_of))
+            self.estimator.move_to(seen)
         res = self.estimator.estimate(targets, axes=axes)
         self.last_frame[frame.plane] = frame
         self.labels_now = particle_label_map(m, res.positions_mm, self.label_values)
+        self.plane_positions[frame.plane] = res.positions_mm
+        self.plane_propagated[frame.plane] = self.propagated.copy()
+        self.plane_labels[frame.plane] = self.labels_now
         pan = m.organ_slice("pancreas")
         c = res.positions_mm[pan].mean(0)
         disp = np.linalg.norm(res.positions_mm - m.positions_mm, axis=1)
