@@ -91,6 +91,13 @@ def fixed_corotated_kirchhoff(F: wp.mat33, mu: float, lam: float):
     return 2.0 * mu * (F - R) * wp.transpose(F) + lam * (J - 1.0) * J * I
 
 
+@wp.func
+def apic_stress_affine(F: wp.mat33, C: wp.mat33, m: float, V0: float, mu: float, lam: float, dt: float, inv_dx: float):
+    """The matrix a particle scatters with its offset to each node: APIC momentum ``m C`` plus the stress
+    impulse ``-dt V0 4/dx^2 tau`` (MLS-MPM), tau the fixed-corotated Kirchhoff stress of F."""
+    return m * C - (dt * V0 * 4.0 * inv_dx * inv_dx) * fixed_corotated_kirchhoff(F, mu, lam)
+
+
 @wp.kernel
 def p2g(
     x: wp.array(dtype=wp.vec3),
@@ -117,9 +124,8 @@ def p2g(
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
     wz = bspline_weights(fx, 2)
-    tau = fixed_corotated_kirchhoff(F[p], mu[p], lam[p])
     m = mass[p]
-    affine = m * C[p] - (dt * vol0[p] * 4.0 * inv_dx * inv_dx) * tau
+    affine = apic_stress_affine(F[p], C[p], m, vol0[p], mu[p], lam[p], dt, inv_dx)
     mom = m * v[p]
     impulse = dt * f_ext[p]
     for a in range(3):
@@ -132,6 +138,147 @@ def p2g(
                 kk = base[2] + c
                 wp.atomic_add(grid_mv, ii, jj, kk, w * (mom + affine * dpos + impulse))
                 wp.atomic_add(grid_m, ii, jj, kk, w * m)
+
+
+@wp.func
+def bspline_slopes(fx: wp.vec3, axis: int, inv_dx: float):
+    """Derivatives (1/m) of :func:`bspline_weights` along one axis with respect to the particle's position."""
+    f = fx[axis]
+    return wp.vec3(-(1.5 - f) * inv_dx, -2.0 * (f - 1.0) * inv_dx, (f - 0.5) * inv_dx)
+
+
+@wp.kernel
+def p2g_fields(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    f_ext: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    vol0: wp.array(dtype=float),
+    mu: wp.array(dtype=float),
+    lam: wp.array(dtype=float),
+    field: wp.array(dtype=int),
+    field_nx: int,
+    dx: float,
+    dt: float,
+    grid_m: wp.array(dtype=float, ndim=3),
+    grid_mv: wp.array(dtype=wp.vec3, ndim=3),
+    grid_g: wp.array(dtype=wp.vec3, ndim=3),
+):
+    """:func:`p2g` into the particle's own organ field (sliding contact), plus ``grid_g = sum m_p grad w_ip``
+    (minus the field's mass gradient at the node: it points out of the organ), for the contact normals."""
+    p = wp.tid()
+    inv_dx = 1.0 / dx
+    xp = x[p]
+    base = base_node(xp, inv_dx)
+    fx = offset_in_stencil(xp, inv_dx, base)
+    wx = bspline_weights(fx, 0)
+    wy = bspline_weights(fx, 1)
+    wz = bspline_weights(fx, 2)
+    gx = bspline_slopes(fx, 0, inv_dx)
+    gy = bspline_slopes(fx, 1, inv_dx)
+    gz = bspline_slopes(fx, 2, inv_dx)
+    m = mass[p]
+    affine = apic_stress_affine(F[p], C[p], m, vol0[p], mu[p], lam[p], dt, inv_dx)
+    mom = m * v[p]
+    impulse = dt * f_ext[p]
+    off = field[p] * field_nx
+    for a in range(3):
+        for b in range(3):
+            for c in range(3):
+                w = wx[a] * wy[b] * wz[c]
+                dpos = (wp.vec3(float(a), float(b), float(c)) - fx) * dx
+                ii = off + base[0] + a
+                jj = base[1] + b
+                kk = base[2] + c
+                wp.atomic_add(grid_mv, ii, jj, kk, w * (mom + affine * dpos + impulse))
+                wp.atomic_add(grid_m, ii, jj, kk, w * m)
+                wp.atomic_add(grid_g, ii, jj, kk, m * wp.vec3(gx[a] * wy[b] * wz[c], wx[a] * gy[b] * wz[c], wx[a] * wy[b] * gz[c]))
+
+
+@wp.func
+def slip_walls(vel: wp.vec3, i: int, j: int, k: int, n: wp.vec3i, wall: int):
+    """Zero the velocity component that would carry a node within ``wall`` cells of a face out of the domain."""
+    out = vel
+    if i < wall and out[0] < 0.0:
+        out = wp.vec3(0.0, out[1], out[2])
+    if i >= n[0] - wall and out[0] > 0.0:
+        out = wp.vec3(0.0, out[1], out[2])
+    if j < wall and out[1] < 0.0:
+        out = wp.vec3(out[0], 0.0, out[2])
+    if j >= n[1] - wall and out[1] > 0.0:
+        out = wp.vec3(out[0], 0.0, out[2])
+    if k < wall and out[2] < 0.0:
+        out = wp.vec3(out[0], out[1], 0.0)
+    if k >= n[2] - wall and out[2] > 0.0:
+        out = wp.vec3(out[0], out[1], 0.0)
+    return out
+
+
+@wp.kernel
+def grid_update_fields(
+    grid_m: wp.array(dtype=float, ndim=3),
+    grid_mv: wp.array(dtype=wp.vec3, ndim=3),
+    grid_g: wp.array(dtype=wp.vec3, ndim=3),
+    n_fields: int,
+    field_nx: int,
+    damping: float,
+    wall: int,
+    friction: float,
+    grid_v: wp.array(dtype=wp.vec3, ndim=3),
+):
+    """Sliding contact between organ fields (multi-velocity-field MPM, Bardenhagen et al. 2000).
+
+    At a node where several organs have mass, the centre-of-mass velocity ``v_cm`` is what sticky contact
+    would give. Organ ``f`` keeps its own velocity unless it moves toward the others along its outward
+    normal ``n_f`` (from the mass gradients, ``n_f ~ g_f - sum_{o != f} g_o``): then the normal part of
+    ``v_f - v_cm`` is removed (no interpenetration) and the tangential part kept (frictionless sliding) or
+    reduced by at most ``friction`` times the normal correction (Coulomb). Moving apart is free (separation).
+    For two organs at a node the corrections cancel in sum: momentum is conserved."""
+    i, j, k = wp.tid()
+    msum = float(0.0)
+    mvsum = wp.vec3(0.0)
+    gsum = wp.vec3(0.0)
+    present = int(0)
+    for f in range(n_fields):
+        mf = grid_m[f * field_nx + i, j, k]
+        if mf > 0.0:
+            msum += mf
+            mvsum += grid_mv[f * field_nx + i, j, k]
+            gsum += grid_g[f * field_nx + i, j, k]
+            present += 1
+    n = wp.vec3i(field_nx, grid_m.shape[1], grid_m.shape[2])
+    if present > 0:
+        v_cm = mvsum / msum
+        for f in range(n_fields):
+            ii = f * field_nx + i
+            mf = grid_m[ii, j, k]
+            vel = wp.vec3(0.0)
+            if mf > 0.0:
+                vel = grid_mv[ii, j, k] / mf
+                if present > 1:
+                    gf = grid_g[ii, j, k]
+                    nrm = 2.0 * gf - gsum
+                    ln = wp.length(nrm)
+                    if ln > 0.0:
+                        nrm = nrm / ln
+                        rel = vel - v_cm
+                        vn = wp.dot(rel, nrm)
+                        if vn > 0.0:  # approaching the others: remove the normal part
+                            tang = rel - vn * nrm
+                            lt = wp.length(tang)
+                            if friction > 0.0 and lt > 0.0:
+                                tang = tang * wp.max(0.0, 1.0 - friction * vn / lt)
+                            vel = v_cm + tang
+                vel = slip_walls(vel * damping, i, j, k, n, wall)
+                grid_m[ii, j, k] = 0.0
+                grid_mv[ii, j, k] = wp.vec3(0.0)
+                grid_g[ii, j, k] = wp.vec3(0.0)
+            grid_v[ii, j, k] = vel
+    else:
+        for f in range(n_fields):
+            grid_v[f * field_nx + i, j, k] = wp.vec3(0.0)
 
 
 @wp.kernel
@@ -153,19 +300,7 @@ def grid_update(
         vel = grid_mv[i, j, k] / m * damping
         grid_m[i, j, k] = 0.0
         grid_mv[i, j, k] = wp.vec3(0.0)
-        n = wp.vec3i(grid_m.shape[0], grid_m.shape[1], grid_m.shape[2])
-        if i < wall and vel[0] < 0.0:
-            vel = wp.vec3(0.0, vel[1], vel[2])
-        if i >= n[0] - wall and vel[0] > 0.0:
-            vel = wp.vec3(0.0, vel[1], vel[2])
-        if j < wall and vel[1] < 0.0:
-            vel = wp.vec3(vel[0], 0.0, vel[2])
-        if j >= n[1] - wall and vel[1] > 0.0:
-            vel = wp.vec3(vel[0], 0.0, vel[2])
-        if k < wall and vel[2] < 0.0:
-            vel = wp.vec3(vel[0], vel[1], 0.0)
-        if k >= n[2] - wall and vel[2] > 0.0:
-            vel = wp.vec3(vel[0], vel[1], 0.0)
+        vel = slip_walls(vel, i, j, k, wp.vec3i(grid_m.shape[0], grid_m.shape[1], grid_m.shape[2]), wall)
     grid_v[i, j, k] = vel
 
 
@@ -177,6 +312,8 @@ def is_finite_vec(a: wp.vec3):
 @wp.kernel
 def g2p(
     grid_v: wp.array(dtype=wp.vec3, ndim=3),
+    field: wp.array(dtype=int),
+    field_nx: int,
     x_in: wp.array(dtype=wp.vec3),
     carry_in: wp.array(dtype=wp.vec3),
     F_in: wp.array(dtype=wp.mat33),
@@ -192,12 +329,17 @@ def g2p(
     F_out: wp.array(dtype=wp.mat33),
     status: wp.array(dtype=int),
 ):
-    """Gather velocity and C, advect, update F. ``status`` = [code, first bad particle, first bad step]."""
+    """Gather velocity and C, advect, update F. ``status`` = [code, first bad particle, first bad step].
+
+    With ``field_nx`` > 0 (sliding contact) each organ has its own grid velocity field, stacked along the
+    first axis: the particle reads field ``field[p]``, nodes ``field[p] * field_nx + i``."""
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x_in[p]
     base = base_node(xp, inv_dx)
     fx = offset_in_stencil(xp, inv_dx, base)
+    if field_nx > 0:
+        base = wp.vec3i(base[0] + field[p] * field_nx, base[1], base[2])
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
     wz = bspline_weights(fx, 2)

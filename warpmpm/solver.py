@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import warp as wp
@@ -64,6 +65,12 @@ class SolverConfig:
         device: Warp device (``"cpu"``, ``"cuda"``, ``"cuda:0"``); None: CUDA when available.
         check_every: read the NaN / out-of-grid flag back every this many steps; None: every step on
             the CPU (free), every 50 on CUDA (a read-back synchronises the GPU with the host).
+        contact: how organs that touch interact. ``"sticky"`` (default): one grid velocity field for all, so
+            touching organs move together (no sliding, no separation). ``"sliding"``: each organ has its own
+            grid velocity field; where organs meet, motion toward each other along the contact normal is
+            removed and tangential motion is free or Coulomb-limited by ``friction`` (multi-velocity-field
+            MPM: :func:`warpmpm.kernels.grid_update_fields`); organs may separate. Costs a grid per organ.
+        friction: Coulomb friction coefficient of ``"sliding"`` contact (0: frictionless).
         cell_at_least_gap: never make a cell smaller than the largest gap between neighbouring particles
             (default). Only a simulation that drives every particle (the ground truth) may turn it off:
             its layers are held by their targets, not by each other.
@@ -82,6 +89,8 @@ class SolverConfig:
     device: str | None = None
     check_every: int | None = None
     cell_at_least_gap: bool = True
+    contact: Literal["sticky", "sliding"] = "sticky"
+    friction: float = 0.0
 
     def __post_init__(self):
         def finite(name, lo=0.0, strict=True, optional=False):
@@ -100,6 +109,9 @@ class SolverConfig:
         finite("dt_s", optional=True)
         finite("damping_per_s", strict=False, optional=True)
         finite("damping_factor", strict=False)
+        finite("friction", strict=False)
+        if self.contact not in ("sticky", "sliding"):
+            raise InputError(f"SolverConfig.contact must be 'sticky' or 'sliding', got {self.contact!r}")
         if self.cfl_limit > 1.0:
             raise InputError(f"SolverConfig.cfl_limit must be at most 1 (explicit MPM is unstable above), got {self.cfl_limit}")
         if self.cfl > self.cfl_limit:
@@ -221,6 +233,9 @@ class MPMModel:
         self.vol0 = wp.array((vol_mm3 * 1e-9).astype(np.float32), dtype=float, device=d)
         self.mu = wp.array(mu.astype(np.float32), dtype=float, device=d)
         self.lam = wp.array(lam.astype(np.float32), dtype=float, device=d)
+        #: grid velocity fields: one per organ with sliding contact, one shared with sticky contact
+        self.n_fields = len(particles.organs) if cfg.contact == "sliding" else 1
+        self.field = wp.array(particles.organ_index.astype(np.int32), dtype=int, device=d)
 
     @property
     def n(self) -> int:
@@ -287,9 +302,12 @@ class MPMSolver:
         self.model = model
         d = model.device
         shape = model.grid_shape
-        self.grid_m = wp.zeros(shape, dtype=float, device=d)
-        self.grid_mv = wp.zeros(shape, dtype=wp.vec3, device=d)
-        self.grid_v = wp.zeros(shape, dtype=wp.vec3, device=d)
+        self.fields = model.n_fields > 1
+        stacked = (shape[0] * model.n_fields, shape[1], shape[2])  # the organ fields stacked along x
+        self.grid_m = wp.zeros(stacked, dtype=float, device=d)
+        self.grid_mv = wp.zeros(stacked, dtype=wp.vec3, device=d)
+        self.grid_v = wp.zeros(stacked, dtype=wp.vec3, device=d)
+        self.grid_g = wp.zeros(stacked, dtype=wp.vec3, device=d) if self.fields else None
         self.zero_force = wp.zeros(model.n, dtype=wp.vec3, device=d)
         self.status = wp.array(np.array([0, 2**31 - 1, 2**31 - 1], dtype=np.int32), dtype=int, device=d)
         self.step_count = 0
@@ -311,12 +329,21 @@ class MPMSolver:
         d = m.device
         force = self.zero_force if control is None else control
         damping = math.exp(-m.damping_per_s * dt)
-        wp.launch(kernels.p2g, m.n, [state_in.x, state_in.v, state_in.C, state_in.F, force, m.mass, m.vol0, m.mu, m.lam, self._dx, dt,
-                                     self.grid_m, self.grid_mv], device=d)
-        wp.launch(kernels.grid_update, m.grid_shape, [self.grid_m, self.grid_mv, damping, m.config.wall_cells, self.grid_v], device=d)
-        wp.launch(kernels.g2p, m.n, [self.grid_v, state_in.x, state_in.x_carry, state_in.F, self._dx, dt, self._x_min, self._x_max,
-                                     self.step_count, state_out.x, state_out.x_carry, state_out.v, state_out.C, state_out.F,
-                                     self.status], device=d)
+        cfg = m.config
+        if self.fields:
+            nx = m.grid_shape[0]
+            wp.launch(kernels.p2g_fields, m.n, [state_in.x, state_in.v, state_in.C, state_in.F, force, m.mass, m.vol0, m.mu, m.lam,
+                                                m.field, nx, self._dx, dt, self.grid_m, self.grid_mv, self.grid_g], device=d)
+            wp.launch(kernels.grid_update_fields, m.grid_shape, [self.grid_m, self.grid_mv, self.grid_g, m.n_fields, nx, damping,
+                                                                 cfg.wall_cells, cfg.friction, self.grid_v], device=d)
+        else:
+            nx = 0
+            wp.launch(kernels.p2g, m.n, [state_in.x, state_in.v, state_in.C, state_in.F, force, m.mass, m.vol0, m.mu, m.lam, self._dx, dt,
+                                         self.grid_m, self.grid_mv], device=d)
+            wp.launch(kernels.grid_update, m.grid_shape, [self.grid_m, self.grid_mv, damping, cfg.wall_cells, self.grid_v], device=d)
+        wp.launch(kernels.g2p, m.n, [self.grid_v, m.field, nx, state_in.x, state_in.x_carry, state_in.F, self._dx, dt, self._x_min,
+                                     self._x_max, self.step_count, state_out.x, state_out.x_carry, state_out.v, state_out.C,
+                                     state_out.F, self.status], device=d)
         self.step_count += 1
         if check and self.check_every and self.step_count % self.check_every == 0:
             self.check()
