@@ -91,6 +91,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, default=6000)
     p.add_argument("--wait-settled", action="store_true",
                    help="run the estimate on until the whole model has settled, not only the driven slice (slower)")
+    p.add_argument("--contact", default="sticky", choices=["sticky", "sliding"],
+                   help="contact between organs in the estimate: one shared grid velocity (sticky) or a field per organ "
+                   "that lets touching organs slide and separate (sliding)")
+    p.add_argument("--gt-contact", default=None, choices=["sticky", "sliding"], help="contact in the ground truth (default: --contact)")
+    p.add_argument("--friction", type=float, default=0.0, help="Coulomb friction of sliding contact (0: frictionless)")
     p.add_argument("--no-volume-registration", action="store_true", help="skip the (slow) 3D registration baseline")
     p.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
     p.add_argument("--rrd-every", type=int, default=20, help="log particle positions every this many steps (scalars every step)")
@@ -235,13 +240,15 @@ def _quiet(verbose: bool) -> None:
 def config_from_args(a):
     """The :class:`~warpmpm.experiment.config.CaseConfig` of ``warpmpm run``'s options (checked)."""
     from .experiment.config import CaseConfig
+    from .solver import SolverConfig
 
     step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
     baselines = ("initial", "propagate") if a.no_volume_registration else ("initial", "propagate", "volume_registration")
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
                       organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets, drive=a.drive,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
-                      baselines=baselines, rrd_every=a.rrd_every)
+                      baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact,
+                      solver=SolverConfig(contact=a.contact, friction=a.friction))
 
 
 def cmd_run(a) -> int:

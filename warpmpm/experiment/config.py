@@ -96,6 +96,9 @@ class CaseConfig:
     """Record particle positions every this many steps (scalars every step)."""
     solver: SolverConfig = field(default_factory=SolverConfig)
     """The estimator's solver settings; the GT refines them (:func:`warpmpm.groundtruth.gt_solver_config`)."""
+    gt_contact: Literal["sticky", "sliding"] | None = None
+    """Contact between organs in the ground truth; None: the estimator's (``solver.contact``). A truth with
+    sliding organs scored against a sticky estimator (and the reverse) measures what the contact model costs."""
 
     def __post_init__(self):
         if self.labels is None and self.image is not None:
@@ -134,6 +137,8 @@ class CaseConfig:
             raise InputError(f"particle step must be an integer >= 1, got {self.particle_step!r}")
         if self.lattice not in ("auto", "voxel", "isotropic"):
             raise InputError(f"unknown particle lattice {self.lattice!r}; use auto, voxel or isotropic")
+        if self.gt_contact not in (None, "sticky", "sliding"):
+            raise InputError(f"unknown ground-truth contact {self.gt_contact!r}; use sticky or sliding")
         if not _is_int(self.max_steps) or self.max_steps < 1:
             raise InputError(f"max steps must be an integer >= 1, got {self.max_steps!r}")
         bad = [b for b in self.baselines if b not in BASELINES]

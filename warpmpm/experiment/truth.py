@@ -4,6 +4,7 @@ and the GT of a sub-combination."""
 from __future__ import annotations
 
 import zlib
+from dataclasses import replace
 
 import numpy as np
 
@@ -20,11 +21,12 @@ MAX_OUTSIDE_SHARE = 0.2
 def make_ground_truth(prep: PreparedCase, cfg: CaseConfig, callback=None) -> GroundTruth:
     """Simulate the GT of ``cfg.protocol`` on the case's full model (every organ present); ``callback`` is
     called every step of the simulation (progress)."""
+    solver = cfg.solver if cfg.gt_contact is None else replace(cfg.solver, contact=cfg.gt_contact)
     if cfg.protocol == "paper":
         return paper_ground_truth(prep.full_model, cfg.deformation, literal=cfg.literal, perturb=cfg.perturb,
-                                  seed=cfg.phantom_seed, centre_mm=prep.centre_mm, solver_config=cfg.solver, device=cfg.device,
+                                  seed=cfg.phantom_seed, centre_mm=prep.centre_mm, solver_config=solver, device=cfg.device,
                                   callback=callback)
-    gt = contact_ground_truth(prep.full_model, seed=contact_seed(prep, cfg), perturb=cfg.perturb, solver_config=cfg.solver,
+    gt = contact_ground_truth(prep.full_model, seed=contact_seed(prep, cfg), perturb=cfg.perturb, solver_config=solver,
                               device=cfg.device, callback=callback)
     check_inside_imaged_volume(prep, gt)
     return gt
