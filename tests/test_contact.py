@@ -84,3 +84,21 @@ def test_contact_options_are_checked():
         SolverConfig(contact="glue")
     with pytest.raises(InputError, match="friction"):
         SolverConfig(contact="sliding", friction=-0.1)
+
+
+def test_bonded_organs_share_a_field_and_the_others_slide():
+    """Under sliding contact the pancreas and the duodenum stay bonded by default (one field); without the
+    bond each organ has its own; sticky contact has one field for all."""
+    a = block_model((4, 4, 3), (2.0, 2.0, 2.0), "pancreas")
+    b = block_model((4, 4, 3), (2.0, 2.0, 2.0), "duodenum", origin_mm=(0.0, 0.0, 6.0))
+    c = block_model((4, 4, 3), (2.0, 2.0, 2.0), "stomach", origin_mm=(0.0, 0.0, 12.0))
+    pm = merge_models(merge_models(a, c), b)
+    assert MPMModel(pm, SolverConfig(device="cpu", contact="sliding")).n_fields == 2
+    assert MPMModel(pm, SolverConfig(device="cpu", contact="sliding", bonded=())).n_fields == 3
+    assert MPMModel(pm, SolverConfig(device="cpu")).n_fields == 1
+    field = MPMModel(pm, SolverConfig(device="cpu", contact="sliding")).field.numpy()
+    organ = np.asarray(pm.organs)[pm.organ_index]
+    assert len(set(field[organ == "pancreas"]) | set(field[organ == "duodenum"])) == 1
+    assert set(field[organ == "stomach"]).isdisjoint(field[organ == "pancreas"])
+    with pytest.raises(InputError, match="two groups"):
+        SolverConfig(contact="sliding", bonded=(("pancreas", "duodenum"), ("pancreas", "stomach")))
