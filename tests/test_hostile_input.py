@@ -450,3 +450,24 @@ def test_killing_a_sweep_ends_its_workers(tmp_path):
     for k in alive:
         os.kill(k, signal.SIGKILL)
     assert not alive, "workers outlived the sweep"
+
+
+def test_a_closed_stdout_stops_without_a_traceback(tmp_path):
+    """`warpmpm ... | head`: the reader goes away while a command prints; it ends with 141, no traceback."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "loud.py"
+    script.write_text("import sys\n"
+                      "from warpmpm import cli\n"
+                      "def loud(a):\n"
+                      "    for _ in range(100000):\n"
+                      "        print('| row |')\n"
+                      "    return 0\n"
+                      "cli.COMMANDS['evaluate-track'] = loud  # a command whose table outlives its reader\n"
+                      "sys.exit(cli.main(['evaluate-track', '--track', 'x', '--truth', 'y']))\n")
+    p = subprocess.run(f"{sys.executable} {script} | head -1; exit ${{PIPESTATUS[0]}}", shell=True, executable="/bin/bash",
+                       capture_output=True, text=True, timeout=120)
+    assert p.stdout.strip() == "| row |"
+    assert "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr
+    assert p.returncode == 141

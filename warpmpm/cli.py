@@ -12,7 +12,8 @@
 
 Exit codes: 0 success; 1 some sweep tasks failed (their rows are missing; re-run to retry); 2 bad
 input (one ``error:`` line naming it, nothing written); 3 the simulation failed; 130 interrupted
-(Ctrl-C: one line, no partial output).
+(Ctrl-C: one line, no partial output); 141 standard output closed by its reader (``| head``: no traceback,
+and what was still to be written may be missing, as with a shell's SIGPIPE).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from dataclasses import replace
 
 from .errors import InputError, SimulationError
 
-EXIT_TASKS_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED = 1, 2, 3, 130
+EXIT_TASKS_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_PIPE_CLOSED = 1, 2, 3, 130, 141
 
 
 # --------------------------------------------------------------------------------------------
@@ -469,6 +470,9 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted: nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:  # the reader of stdout went away (`warpmpm ... | head`): stop without a traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_PIPE_CLOSED
 
 
 def run_main(argv=None) -> int:
