@@ -371,6 +371,12 @@ class SliceDrivenEstimator:
     def positions_mm(self) -> np.ndarray:
         return self.state.positions_mm()
 
+    def _inside_grid(self, points_mm: np.ndarray) -> bool:
+        """Whether every point lies where a particle's stencil stays clear of the grid's wall layer."""
+        lo = self.mpm.origin_mm + (self.mpm.config.wall_cells + 1) * self.mpm.dx_mm
+        hi = self.mpm.origin_mm + (np.asarray(self.mpm.grid_shape) - self.mpm.config.wall_cells - 2) * self.mpm.dx_mm
+        return not (np.any(points_mm < lo) or np.any(points_mm > hi))
+
     def move_to(self, positions_mm: np.ndarray) -> None:
         """Place every particle at ``positions_mm`` (N, 3), at rest, keeping its deformation gradient: a
         kinematic prediction the next :meth:`estimate` corrects (the tracker's predictor). The move itself
@@ -379,9 +385,7 @@ class SliceDrivenEstimator:
         positions_mm = np.asarray(positions_mm, dtype=np.float64)
         if positions_mm.shape != (self.particles.n, 3) or not np.all(np.isfinite(positions_mm)):
             raise InputError(f"predicted positions must be finite with shape ({self.particles.n}, 3), got {positions_mm.shape}")
-        lo = self.mpm.origin_mm + (self.mpm.config.wall_cells + 1) * self.mpm.dx_mm
-        hi = self.mpm.origin_mm + (np.asarray(self.mpm.grid_shape) - self.mpm.config.wall_cells - 2) * self.mpm.dx_mm
-        if np.any(positions_mm < lo) or np.any(positions_mm > hi):
+        if not self._inside_grid(positions_mm):
             raise InputError("predicted positions lie outside the simulation grid; build the estimator with a larger reach")
         self.state.x.assign(self.mpm.to_local_m(positions_mm))
         self.state.x_carry.zero_()
@@ -449,9 +453,7 @@ class SliceDrivenEstimator:
             raise InputError(f"targets must have shape ({len(self.driven)}, 3) for the driven particles, got {targets_mm.shape}")
         if not np.all(np.isfinite(targets_mm)):
             raise InputError("targets hold a non-finite value")
-        lo = self.mpm.origin_mm + (self.mpm.config.wall_cells + 1) * self.mpm.dx_mm
-        hi = self.mpm.origin_mm + (np.asarray(self.mpm.grid_shape) - self.mpm.config.wall_cells - 2) * self.mpm.dx_mm
-        if np.any(targets_mm < lo) or np.any(targets_mm > hi):
+        if not self._inside_grid(targets_mm):
             raise InputError("targets lie outside the simulation grid; build the estimator with extra_points_mm covering them "
                              f"or a larger SolverConfig.margin_mm (now {self.mpm.config.margin_mm} mm)")
         nd = len(self.driven)
