@@ -471,3 +471,12 @@ def test_a_closed_stdout_stops_without_a_traceback(tmp_path):
     assert p.stdout.strip() == "| row |"
     assert "Traceback" not in p.stderr and "BrokenPipe" not in p.stderr
     assert p.returncode == 141
+
+
+@pytest.mark.parametrize("args", [["--pixel-mm", "0"], ["--plane", "oblique"], ["--frames", "0"]])
+def test_make_cine_refuses_bad_parameters_before_writing_anything(tmp_path, args):
+    from warpmpm.cli import main
+
+    out = tmp_path / "series"
+    assert main(["make-cine", "--out", str(out), *args]) == 2
+    assert not out.exists()  # not even the phantom's planning files

@@ -409,9 +409,11 @@ def cmd_track(a) -> int:
 
 
 def cmd_make_cine(a) -> int:
-    from .experiment.cine_series import make_cine
+    from .experiment.cine_series import check_cine_parameters, make_cine
     from .phantom import make_phantom
 
+    planes = tuple(p.strip() for p in a.plane.split(",") if p.strip())
+    check_cine_parameters(planes, a.frames, a.fps, 4.0, a.thickness_mm, a.pixel_mm, a.format)  # before anything is written
     if a.labels is None:  # the phantom: its planning image and labels go beside the series, for `warpmpm track`
         from .images import write_case
 
@@ -421,10 +423,6 @@ def cmd_make_cine(a) -> int:
         case = _planning_case(paths[1], paths[0], "amos")  # as the tracker will read it (float32 geometry)
     else:
         case = _planning_case(a.image, a.labels, a.preset)
-    planes = tuple(p.strip() for p in a.plane.split(",") if p.strip())
-    for p in planes:
-        if p not in ("sagittal", "coronal", "axial"):
-            raise InputError(f"unknown plane {p!r}; use sagittal, coronal or axial")
     make_cine(case, a.out, planes=planes, frames=a.frames, fps=a.fps, thickness_mm=a.thickness_mm, pixel_mm=a.pixel_mm, seed=a.seed,
               particle_step=a.particle_step, fmt=a.format, progress=lambda t: print(t, flush=True))
     print(f"wrote {a.out}/cine and {a.out}/truth")

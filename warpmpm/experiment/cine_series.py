@@ -34,6 +34,22 @@ from ..slices import orientation_image_axis
 BREATHING_MM = {"pancreas": (10.0, 3.0), "stomach": (12.0, 4.0), "duodenum": (10.0, 3.0), "left_kidney": (14.0, 3.0)}
 
 
+def check_cine_parameters(planes, frames: int, fps: float, period_s: float, thickness_mm: float, pixel_mm: float | None,
+                          fmt: str) -> None:
+    """:class:`InputError` naming the first bad parameter of :func:`make_cine` (checked before anything is written)."""
+    for p in planes:
+        if p not in ("sagittal", "coronal", "axial"):
+            raise InputError(f"unknown plane {p!r}; use sagittal, coronal or axial")
+    if not planes:
+        raise InputError("no cine plane given; use sagittal, coronal or axial")
+    if fmt not in ("nifti", "dicom"):
+        raise InputError(f"unknown frame format {fmt!r}; use nifti or dicom")
+    if frames < 1 or fps <= 0 or period_s <= 0 or thickness_mm <= 0:
+        raise InputError("frames must be >= 1, fps, period and thickness > 0")
+    if pixel_mm is not None and not (math.isfinite(pixel_mm) and 0.2 <= pixel_mm <= 10.0):
+        raise InputError(f"cine pixel size must be 0.2-10 mm, got {pixel_mm}")
+
+
 def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8, fps: float = 4.0, period_s: float = 4.0,
               thickness_mm: float = 6.0, pixel_mm: float | None = 2.0, noise_sd: float = 0.02, push_mm: float = 4.0,
               particle_step: int = 1, seed: int = 0, fmt: str = "dicom", progress=None) -> dict:
@@ -43,14 +59,9 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
     cine: 1.5-2.5 mm; None keeps the planning grid's). ``fmt``: ``dicom`` (default: 2D MR DICOM, 16-bit, with
     position, orientation, acquisition time, instance number and slice thickness) or ``nifti`` (one voxel
     thick)."""
-    if fmt not in ("nifti", "dicom"):
-        raise InputError(f"unknown frame format {fmt!r}; use nifti or dicom")
+    check_cine_parameters(planes, frames, fps, period_s, thickness_mm, pixel_mm, fmt)
     if case.image is None:
         raise InputError("a synthetic cine series needs the planning image")
-    if frames < 1 or fps <= 0 or period_s <= 0 or thickness_mm <= 0:
-        raise InputError("frames must be >= 1, fps, period and thickness > 0")
-    if pixel_mm is not None and not (math.isfinite(pixel_mm) and 0.2 <= pixel_mm <= 10.0):
-        raise InputError(f"cine pixel size must be 0.2-10 mm, got {pixel_mm}")
     present = tuple(o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o]))
     model = build_model(case, present, sampling_step=particle_step)
     neighbours = [o for o in present if o != "pancreas"]
