@@ -16,6 +16,9 @@ The step, for particles p and grid nodes i:
    momentum it has read (no separate clearing pass).
 3. ``g2p``: particle velocity, affine C, position, ``F <- (I + dt C) F``, and the guards that keep
    every particle inside the grid and flag non-finite values.
+4. With adaptive damping (the settled mode), ``stiffness_rayleigh`` and the one-thread ``adapt_damping``
+   set the next step's velocity factor on the device (``damping`` is a one-element array, so a captured
+   graph replays it without a host read-back).
 """
 
 import warp as wp
@@ -223,7 +226,7 @@ def grid_update_fields(
     grid_g: wp.array(dtype=wp.vec3, ndim=3),
     n_fields: int,
     field_nx: int,
-    damping: float,
+    damping: wp.array(dtype=float),
     wall: int,
     friction: float,
     grid_v: wp.array(dtype=wp.vec3, ndim=3),
@@ -271,7 +274,7 @@ def grid_update_fields(
                             if friction > 0.0 and lt > 0.0:
                                 tang = tang * wp.max(0.0, 1.0 - friction * vn / lt)
                             vel = v_cm + tang
-                vel = slip_walls(vel * damping, i, j, k, n, wall)
+                vel = slip_walls(vel * damping[0], i, j, k, n, wall)
                 grid_m[ii, j, k] = 0.0
                 grid_mv[ii, j, k] = wp.vec3(0.0)
                 grid_g[ii, j, k] = wp.vec3(0.0)
@@ -285,11 +288,11 @@ def grid_update_fields(
 def grid_update(
     grid_m: wp.array(dtype=float, ndim=3),
     grid_mv: wp.array(dtype=wp.vec3, ndim=3),
-    damping: float,
+    damping: wp.array(dtype=float),
     wall: int,
     grid_v: wp.array(dtype=wp.vec3, ndim=3),
 ):
-    """Momentum -> velocity, velocity damping ``v <- v * damping``, slip walls ``wall`` cells thick.
+    """Momentum -> velocity, velocity damping ``v <- v * damping[0]``, slip walls ``wall`` cells thick.
 
     Clears the node's mass and momentum once read, so the next step's ``p2g`` scatters into a clean grid
     without a separate clearing pass over every node (the grid starts zeroed)."""
@@ -297,7 +300,7 @@ def grid_update(
     m = grid_m[i, j, k]
     vel = wp.vec3(0.0)
     if m > 0.0:
-        vel = grid_mv[i, j, k] / m * damping
+        vel = grid_mv[i, j, k] / m * damping[0]
         grid_m[i, j, k] = 0.0
         grid_mv[i, j, k] = wp.vec3(0.0)
         vel = slip_walls(vel, i, j, k, wp.vec3i(grid_m.shape[0], grid_m.shape[1], grid_m.shape[2]), wall)
@@ -384,3 +387,58 @@ def g2p(
     v_out[p] = new_v
     C_out[p] = new_C
     F_out[p] = F_new
+
+
+@wp.kernel
+def stiffness_rayleigh(
+    v_in: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    accel_prev: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    weight: wp.array(dtype=float),
+    damping: wp.array(dtype=float),
+    dt: float,
+    sums: wp.array(dtype=float),
+):
+    """Rayleigh quotient of the stiffness the motion sees (adaptive dynamic relaxation, Underwood 1983).
+
+    The undamped acceleration of this step is ``a_n = (v_out / damping - v_in) / dt``; between two steps it
+    changes by ``a_n - a_(n-1) = -(K / M) dx`` with ``dx = v_in dt`` the move in between, so
+    ``omega^2 = -sum w m (a_n - a_(n-1)) . v_in / (dt sum w m |v_in|^2)`` is the squared frequency of the
+    mode the body is moving in. Accumulates the numerator (without 1/dt) and the denominator into ``sums``
+    (particles of ``weight`` 0, the driven ones, left out: their drive is a spring of its own)."""
+    p = wp.tid()
+    vi = v_in[p]
+    a = (v_out[p] / damping[0] - vi) / dt
+    da = a - accel_prev[p]
+    accel_prev[p] = a
+    w = mass[p] * weight[p]
+    if w > 0.0:
+        wp.atomic_add(sums, 0, -w * wp.dot(da, vi))
+        wp.atomic_add(sums, 1, w * wp.dot(vi, vi))
+
+
+@wp.kernel
+def adapt_damping(
+    sums: wp.array(dtype=float),
+    memory: wp.array(dtype=float),
+    keep: float,
+    dt: float,
+    gamma_min: float,
+    gamma_max: float,
+    damping: wp.array(dtype=float),
+):
+    """One thread: critical damping ``gamma = 2 omega`` of the mode the body moves in, from the Rayleigh
+    sums of :func:`stiffness_rayleigh` averaged over the last ~``1 / (1 - keep)`` steps, clamped to
+    ``[gamma_min, gamma_max]`` (1/s); writes the velocity factor ``exp(-gamma dt)`` and clears the sums.
+    With nothing moving (no denominator) the factor stays as it was."""
+    num = keep * memory[0] + sums[0]
+    den = keep * memory[1] + sums[1]
+    memory[0] = num
+    memory[1] = den
+    sums[0] = 0.0
+    sums[1] = 0.0
+    if den > 0.0:
+        omega2 = wp.max(num / (den * dt), 0.0)
+        gamma = wp.clamp(2.0 * wp.sqrt(omega2), gamma_min, gamma_max)
+        damping[0] = wp.exp(-gamma * dt)
