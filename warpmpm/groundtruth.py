@@ -130,8 +130,13 @@ def gt_solver_config(base: SolverConfig | None = None, device: str | None = None
 
 
 def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray, *, perturb: bool, seed: int,
-                solver_config: SolverConfig | None, device: str | None, max_steps: int = 4000, callback=None):
+                solver_config: SolverConfig | None, device: str | None, max_steps: int = 4000, callback=None,
+                wait_settled: bool = False):
     """Simulate a GT: ``targets_mm`` of the ``driven`` particles, perturbed materials; returns ``(params, result)``.
+
+    ``wait_settled``: run on until the whole body has settled (the settled mode: adaptive damping, PD drive; up
+    to ``max_steps``), an elastic equilibrium instead of the paper rule's snapshot taken when the driven
+    particles have arrived (the contact truth's body still moves ~5 mm per 100 steps then).
 
     ``callback(estimator, step, rel_residual, rms_mm)`` is called every step (progress)."""
     params: dict = {"perturbed": bool(perturb), "material_seed": int(seed)}
@@ -147,7 +152,8 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
             cfg = replace(cfg, cell_size_mm=model.max_gap_mm)  # the refinement stops at the particles' own gap
     # the truth is held to the paper's stricter stopping rule (TH_D = 4), not the estimator's default
     est = SliceDrivenEstimator(gt_model, driven=driven, solver_config=cfg, drive_config=DriveConfig(),
-                               convergence=replace(ConvergenceConfig.paper(), max_steps=max_steps), extra_points_mm=targets_mm,
+                               convergence=replace(ConvergenceConfig.paper(), max_steps=max_steps, wait_settled=wait_settled),
+                               extra_points_mm=targets_mm,
                                callback=callback)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -225,12 +231,14 @@ def contact_targets(model: ParticleModel, seed: int, neighbour: str | None = Non
 
 def contact_ground_truth(model: ParticleModel, *, seed: int = 0, perturb: bool = True, neighbour: str | None = None,
                          push_mm: float | None = None, solver_config: SolverConfig | None = None,
-                         device: str | None = None, callback=None) -> GroundTruth:
-    """The contact protocol on ``model``; parameters and seed recorded in ``params``."""
+                         device: str | None = None, callback=None, wait_settled: bool = False,
+                         max_steps: int = 4000) -> GroundTruth:
+    """The contact protocol on ``model``; parameters and seed recorded in ``params``; ``wait_settled`` and
+    ``max_steps`` as :func:`simulate_gt`."""
     idx, targets, params = contact_targets(model, seed, neighbour, push_mm)
     params["seed"] = seed
     sim, res = simulate_gt(model, idx, targets, perturb=perturb, seed=seed + 77, solver_config=solver_config, device=device,
-                           callback=callback)
+                           callback=callback, wait_settled=wait_settled, max_steps=max_steps)
     return GroundTruth(model, res.positions_mm, "contact", params | sim, res.steps, res.wall_s, res.converged)
 
 

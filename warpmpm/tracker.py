@@ -48,6 +48,10 @@ class TrackerConfig:
     """Steps per frame before the frame is reported not converged."""
     displacement: bool = False
     """Also write each frame's 3D displacement field."""
+    wait_settled: bool = False
+    """The settled mode: every frame runs on until the whole model has settled, with adaptive damping and a PD
+    drive (:class:`~warpmpm.driving.ConvergenceConfig`, :class:`~warpmpm.solver.SolverConfig`); ``max_steps``
+    still caps a frame."""
     solver: SolverConfig = field(default_factory=SolverConfig)
     """The MPM solver's settings."""
     margin_mm: float = 40.0
@@ -95,7 +99,8 @@ class Tracker:
         self.driven = np.unique(np.concatenate(candidates))
         reach = [m.positions_mm + s * cfg.margin_mm * np.eye(3)[k] for k in range(3) for s in (-0.5, 0.5)]
         self.estimator = SliceDrivenEstimator(m, driven=self.driven, solver_config=cfg.solver, extra_points_mm=np.vstack(reach),
-                                              convergence=ConvergenceConfig(max_steps=cfg.max_steps))
+                                              convergence=ConvergenceConfig(max_steps=cfg.max_steps,
+                                                                                            wait_settled=cfg.wait_settled))
         self.planning_image = case.intensity_image()
         self.last_frame: dict[int, CineFrame] = {}
         self.labels_now = case.labels.copy()

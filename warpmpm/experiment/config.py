@@ -100,6 +100,11 @@ class CaseConfig:
     """Contact between organs in the ground truth; None: the estimator's (``solver.contact``). A truth with
     sliding organs scored against a sticky estimator (and the reverse) measures what the contact model costs."""
 
+    gt_wait_settled: bool = False
+    """Contact protocol: simulate the ground truth until its whole body has settled (an elastic equilibrium, up
+    to ``max_steps``; the settled mode of the estimator), instead of stopping when the driven neighbour has
+    arrived. The paper protocol drives every particle, so its truth is the same either way."""
+
     def __post_init__(self):
         if self.labels is None and self.image is not None:
             raise InputError("--image needs --labels (the label map defines the organs)")

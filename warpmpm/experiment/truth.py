@@ -27,7 +27,8 @@ def make_ground_truth(prep: PreparedCase, cfg: CaseConfig, callback=None) -> Gro
                                   seed=cfg.phantom_seed, centre_mm=prep.centre_mm, solver_config=solver, device=cfg.device,
                                   callback=callback)
     gt = contact_ground_truth(prep.full_model, seed=contact_seed(prep, cfg), perturb=cfg.perturb, solver_config=solver,
-                              device=cfg.device, callback=callback)
+                              device=cfg.device, callback=callback, wait_settled=cfg.gt_wait_settled,
+                              max_steps=cfg.max_steps if cfg.gt_wait_settled else 4000)
     check_inside_imaged_volume(prep, gt)
     return gt
 
