@@ -8,8 +8,9 @@ Scenes: a soft (pancreas) block, a bonded pancreas + left kidney block and a pan
 (:mod:`warpmpm.fem`: trilinear hexahedra on the particles, selective reduced integration, the same Lame
 parameters, the driven slice a Dirichlet condition) is the reference; the figure is the relative L2
 difference of the non-driven particles' displacement, at the default stopping rule, once the whole
-body has settled (``wait_settled``) at the default damping and at damping 1, and run on to a fixed 6,000
-steps (does the answer drift?). ``--ppc-sweep``: the scaled soft block, settled at damping 1, for 1, 2, 4
+body has settled (``wait_settled``: the settled mode, adaptive damping and a PD drive; and each of its two
+changes alone against the fixed damping and PID drive it replaced), and run on to a fixed 6,000 steps (does
+the answer drift?). ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
 and 8 particles per cell, with the error by distance from the slice (in-plane and through-plane parts).
 """
 
@@ -27,7 +28,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
 import warp as wp  # noqa: E402
 
-from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
+from warpmpm.driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator  # noqa: E402
 from warpmpm.fem import fem_displacement_mm  # noqa: E402
 from warpmpm.scenes import block_model, merge_models  # noqa: E402
 from warpmpm.slices import DrivingSlice, InPlaneAffine  # noqa: E402
@@ -38,10 +39,16 @@ A = math.radians(3.0)
 LOADS = {"scale 1.05": InPlaneAffine(np.eye(2) * 1.05),
          "rotation 3 deg": InPlaneAffine([[math.cos(A), -math.sin(A)], [math.sin(A), math.cos(A)]]),
          "shear 3 deg": InPlaneAffine([[1.0, math.tan(A)], [0.0, 1.0]])}
-RULES = [("default stop, damping 4", SolverConfig(device="cpu"), ConvergenceConfig()),
-         ("settled, damping 4", SolverConfig(device="cpu"), ConvergenceConfig(wait_settled=True, max_steps=20000)),
-         ("settled, damping 1", SolverConfig(device="cpu", damping_factor=1.0), ConvergenceConfig(wait_settled=True, max_steps=20000)),
-         ("6,000 steps, damping 1", SolverConfig(device="cpu", damping_factor=1.0), ConvergenceConfig(th_v=1e-12, th_d=12, max_steps=6000))]
+FIXED = SolverConfig(device="cpu", damping_rule="fixed")  # the damping before the fourth session: fixed, factor 4
+ADAPTIVE = SolverConfig(device="cpu", damping_rule="adaptive")
+SETTLED = ConvergenceConfig(wait_settled=True, max_steps=20000)
+PID, PD = DriveConfig(ki_ratio=0.02), DriveConfig(ki_ratio=0.0)
+#: (name, solver, stopping rule, drive): the defaults first, then what each change of the settled mode does alone
+RULES = [("default stop", SolverConfig(device="cpu"), ConvergenceConfig(), None),
+         ("settled, fixed damping 4, PID (before)", FIXED, SETTLED, PID),
+         ("settled, adaptive damping, PID", ADAPTIVE, SETTLED, PID),
+         ("settled (default: adaptive damping, PD)", SolverConfig(device="cpu"), SETTLED, None),
+         ("6,000 steps, adaptive damping, PD", ADAPTIVE, ConvergenceConfig(th_v=1e-12, th_d=12, max_steps=6000), PD)]
 
 
 def scenes(size):
@@ -61,8 +68,8 @@ def compare(model, load, rule):
     u_fem = fem_displacement_mm(model, idx, tg)
     free = np.ones(model.n, bool)
     free[idx] = False
-    _, cfg, conv = rule
-    est = SliceDrivenEstimator(model, sl, solver_config=cfg, extra_points_mm=tg, convergence=conv)
+    _, cfg, conv, drive = rule
+    est = SliceDrivenEstimator(model, sl, solver_config=cfg, extra_points_mm=tg, convergence=conv, drive_config=drive)
     t0 = time.perf_counter()
     r = est.estimate(tg)
     wall = time.perf_counter() - t0
@@ -75,6 +82,8 @@ def compare(model, load, rule):
                              "fem_mm": float(np.linalg.norm(u_fem[dist == dd], axis=1).mean())} for dd in np.unique(dist)}
     return {"rel_l2": rel, "max_error_mm": float(np.abs(u[free] - u_fem[free]).max()),
             "mean_error_mm": float(np.linalg.norm(e[free], axis=1).mean()), "steps": r.steps, "wall_s": wall,
+            "slice_rms_residual_mm": r.final_rms_mm,
+            "slice_rms_motion_mm": float(np.sqrt(np.mean(np.sum((tg - model.positions_mm[idx]) ** 2, axis=1)))),
             "settled": r.settled, "dx_mm": est.mpm.dx_mm, "by_layer_distance": by_distance}
 
 
@@ -108,8 +117,7 @@ def ppc_sweep(size):
           "through-plane mm | far half: through-plane mm | FEM there mm |")
     print("|---|---|---|---|---|---|---|---|")
     for ppc in (1.0, 2.0, 4.0, 8.0):
-        rule = ("settled", SolverConfig(device="cpu", damping_factor=1.0, particles_per_cell=ppc),
-                ConvergenceConfig(wait_settled=True, max_steps=20000))
+        rule = ("settled", SolverConfig(device="cpu", particles_per_cell=ppc), SETTLED, None)
         r = compare(model, LOADS["scale 1.05"], rule)
         near, far = r["by_layer_distance"][1], r["by_layer_distance"][max(r["by_layer_distance"])]
         rows.append({"particles_per_cell": ppc, **r})

@@ -1,5 +1,7 @@
 """Issue 4: slice-driven estimation."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -146,21 +148,24 @@ def test_bad_driving_input(tiny_model):
         SliceDrivenEstimator(m, sl, solver_config=CPU, drive_config=DriveConfig(kp_per_s2=1e20))
 
 
-def _frame(model, sl, tg, **kw):
-    est = SliceDrivenEstimator(model, sl, solver_config=CPU, extra_points_mm=tg, **kw)
+def _frame(model, sl, tg, solver=CPU, **kw):
+    est = SliceDrivenEstimator(model, sl, solver_config=solver, extra_points_mm=tg, **kw)
     return est, est.estimate(tg, convergence=ConvergenceConfig(max_steps=120, th_s=10**6))
 
 
-def test_captured_graph_replays_the_eager_steps_exactly(tiny_model):
+@pytest.mark.parametrize("damping", ["fixed", "adaptive"])
+def test_captured_graph_replays_the_eager_steps_exactly(tiny_model, damping):
     """The graph path (one captured batch of steps replayed per read-back) runs the same kernels on the
     same buffers, so on the CPU it gives bit-identical positions and residuals to the eager loop,
-    frame after frame."""
+    frame after frame; the adaptive damping too (its factor lives on the device, set inside the graph)."""
+    solver = replace(CPU, damping_rule=damping)
     m = tiny_model
     k = int(np.median(m.voxel_ijk[m.organ_slice("pancreas"), 2]))
     sl = [DrivingSlice("axial", k)]
     _, tg = affine_targets(m, m.positions_mm, sl, [InPlaneAffine(paper_affine(1))])
-    eager, r1 = _frame(m, sl, tg, sync_every=10)
-    graph, r2 = _frame(m, sl, tg, sync_every=10, use_graph=True)
+    eager, r1 = _frame(m, sl, tg, solver, sync_every=10)
+    graph, r2 = _frame(m, sl, tg, solver, sync_every=10, use_graph=True)
+    assert eager.solver.adaptive == (damping == "adaptive")
     assert graph._graph is not None and r1.steps == r2.steps == 120
     np.testing.assert_array_equal(r1.positions_mm, r2.positions_mm)
     np.testing.assert_array_equal(r1.residual_history, r2.residual_history)
