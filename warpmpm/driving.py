@@ -128,6 +128,8 @@ class ConvergenceMonitor:
         """Motion still to come if the window motion keeps decaying geometrically: ``d r / (1 - r)``,
         ``r`` the ratio of the last two windows' motion (infinite when it does not decay)."""
         d, prev = self.body_motion_mm, self._previous_motion_mm
+        if d == 0.0:
+            return 0.0  # nothing moved in the last window (a frame that starts in equilibrium)
         if not (math.isfinite(d) and math.isfinite(prev)) or prev <= 0:
             return float("inf")
         r = d / prev
