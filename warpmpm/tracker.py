@@ -144,7 +144,9 @@ class Tracker:
         stored = frame.slice_2d(self.planning_image) if prev is None else prev.slice_2d()
         captured = frame.slice_2d()
         mask, own = self._organ_masks(frame)
+        t_reg = time.perf_counter()
         whole, per_organ = register_slice_organs(stored, captured, frame.centre_mm, mask, own)
+        reg_s = time.perf_counter() - t_reg  # the whole call: refused organs and the fit checks cost time too
         if not whole.ok:
             raise InputError(f"cine frame {frame.path}: the slice registration gave a degenerate transform ({whole.stop})")
         x = self.estimator.positions_mm()
@@ -169,7 +171,6 @@ class Tracker:
                              f"(the organs have moved out of it)")
         seen = observed(x, self.plane_positions.get(frame.plane, m.positions_mm))
         targets[on] = seen[self.driven[on]]
-        reg_s = whole.wall_s + sum(r.wall_s for r in per_organ.values())
         axes[on] = frame.projector
         self.propagated = observed(self.propagated, self.plane_propagated.get(frame.plane, m.positions_mm))
         if self.config.predict:
