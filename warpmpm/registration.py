@@ -11,7 +11,7 @@ the in-plane offsets ``(u, v) = ((x - c) . e_u, (x - c) . e_v)`` in mm from the 
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,13 +63,19 @@ def crop_to_mask(fixed: sitk.Image, moving: sitk.Image, mask: sitk.Image, margin
             sitk.RegionOfInterest(sitk.Cast(mask, sitk.sitkUInt8), size, lo))
 
 
+#: Slices up to this many pixels are registered on one ITK thread by :func:`register_slice_organs` (measured with
+#: ``benchmarks/registration_speed.py``: 128 x 128 and 85 x 85 slices 31 ms on one thread against 37 on two;
+#: 256 x 256, 82 against 63).
+ONE_THREAD_MAX_PIXELS = 128 * 128
+
+
 @contextmanager
 def one_itk_thread():
     """Run SimpleITK on one thread inside the block (the global default, restored after; not for use from
     several Python threads at once). On the small 2D images of a cine frame ITK's thread start-up costs
-    more than the threads save: a frame's organ-aware registration on the MR series takes 67 ms median on
-    one thread against 103 ms on this machine's two (``ImageRegistrationMethod.SetNumberOfThreads`` alone
-    did not change it)."""
+    more than the threads save: a frame's organ-aware registration on the MR series (2 mm pixels) takes 66 ms
+    median on one thread against 103 ms on this machine's two (``ImageRegistrationMethod.SetNumberOfThreads``
+    alone did not change it). Larger slices gain from the threads (:data:`ONE_THREAD_MAX_PIXELS`)."""
     old = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
     sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(1)
     try:
@@ -185,7 +191,8 @@ def register_slice_organs(stored: sitk.Image, captured: sitk.Image, centre_mm: n
 
     Returns the whole slice's :class:`SliceRegistration` and organ -> :class:`SliceRegistration`.
     """
-    with one_itk_thread():
+    small = captured.GetNumberOfPixels() <= ONE_THREAD_MAX_PIXELS
+    with one_itk_thread() if small else nullcontext():
         return _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_pixels, max_slide_mm)
 
 
