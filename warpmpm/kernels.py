@@ -398,7 +398,7 @@ def stiffness_rayleigh(
     weight: wp.array(dtype=float),
     damping: wp.array(dtype=float),
     dt: float,
-    sums: wp.array(dtype=float),
+    sums: wp.array(dtype=float, ndim=2),
 ):
     """Rayleigh quotient of the stiffness the motion sees (adaptive dynamic relaxation, Underwood 1983).
 
@@ -406,7 +406,8 @@ def stiffness_rayleigh(
     changes by ``a_n - a_(n-1) = -(K / M) dx`` with ``dx = v_in dt`` the move in between, so
     ``omega^2 = -sum w m (a_n - a_(n-1)) . v_in / (dt sum w m |v_in|^2)`` is the squared frequency of the
     mode the body is moving in. Accumulates the numerator (without 1/dt) and the denominator into ``sums``
-    (particles of ``weight`` 0, the driven ones, left out: their drive is a spring of its own)."""
+    (particles of ``weight`` 0, the driven ones, left out: their drive is a spring of its own), spread over
+    ``sums.shape[1]`` slots by particle index so that a GPU's atomics do not all queue on one address."""
     p = wp.tid()
     vi = v_in[p]
     a = (v_out[p] / damping[0] - vi) / dt
@@ -414,13 +415,14 @@ def stiffness_rayleigh(
     accel_prev[p] = a
     w = mass[p] * weight[p]
     if w > 0.0:
-        wp.atomic_add(sums, 0, -w * wp.dot(da, vi))
-        wp.atomic_add(sums, 1, w * wp.dot(vi, vi))
+        slot = p % sums.shape[1]
+        wp.atomic_add(sums, 0, slot, -w * wp.dot(da, vi))
+        wp.atomic_add(sums, 1, slot, w * wp.dot(vi, vi))
 
 
 @wp.kernel
 def adapt_damping(
-    sums: wp.array(dtype=float),
+    sums: wp.array(dtype=float, ndim=2),
     memory: wp.array(dtype=float),
     keep: float,
     dt: float,
@@ -432,12 +434,15 @@ def adapt_damping(
     sums of :func:`stiffness_rayleigh` averaged over the last ~``1 / (1 - keep)`` steps, clamped to
     ``[gamma_min, gamma_max]`` (1/s); writes the velocity factor ``exp(-gamma dt)`` and clears the sums.
     With nothing moving (no denominator) the factor stays as it was."""
-    num = keep * memory[0] + sums[0]
-    den = keep * memory[1] + sums[1]
+    num = keep * memory[0]
+    den = keep * memory[1]
+    for slot in range(sums.shape[1]):
+        num += sums[0, slot]
+        den += sums[1, slot]
+        sums[0, slot] = 0.0
+        sums[1, slot] = 0.0
     memory[0] = num
     memory[1] = den
-    sums[0] = 0.0
-    sums[1] = 0.0
     if den > 0.0:
         omega2 = wp.max(num / (den * dt), 0.0)
         gamma = wp.clamp(2.0 * wp.sqrt(omega2), gamma_min, gamma_max)

@@ -160,6 +160,9 @@ class SolverConfig:
             raise InputError(f"SolverConfig.check_every must be an integer >= 1, got {self.check_every!r}")
 
 
+#: Slots the adaptive damping's sums are spread over (by particle index): fewer atomics on one address on a GPU.
+RAYLEIGH_SLOTS = 64
+
 #: Bytes per particle of a step (two states of x, v, C, F; mass, volume, Lame; force) and per grid node.
 BYTES_PER_PARTICLE = 220
 BYTES_PER_NODE = 28
@@ -361,7 +364,7 @@ class MPMSolver:
         self.adaptive = model.config.damping_rule == "adaptive" if adaptive is None else bool(adaptive)
         if self.adaptive:
             self._accel_prev = wp.zeros(model.n, dtype=wp.vec3, device=d)
-            self._rayleigh = wp.zeros(2, dtype=float, device=d)
+            self._rayleigh = wp.zeros((2, RAYLEIGH_SLOTS), dtype=float, device=d)
             self._rayleigh_memory = wp.zeros(2, dtype=float, device=d)
             #: 1 for the particles whose motion measures the stiffness, 0 for the driven ones (:meth:`set_driven`)
             self.rayleigh_weight = wp.ones(model.n, dtype=float, device=d)
