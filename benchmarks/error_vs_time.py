@@ -120,6 +120,7 @@ def stream(a, device):
         errs.append(np.linalg.norm(res.positions_mm[pan] - truth[pan], axis=1).mean())
         print(f"  frame {f}: {lat[-1] * 1e3:.0f} ms, {res.steps} steps, error {errs[-1]:.2f} mm", flush=True)
     lat = np.array(lat)
+    raw.save("stream", {"particles": model.n, "latency_s": lat.tolist(), "steps": steps, "error_mm": [float(e) for e in errs]})
     print(f"\nstreaming {a.stream} frames, {model.n} particles on {device}: latency median {np.median(lat) * 1e3:.0f} ms, "
           f"p95 {np.percentile(lat, 95) * 1e3:.0f} ms (first frame {lat[0] * 1e3:.0f} ms, from rest); "
           f"median steps {np.median(steps):.0f}; mean error {np.mean(errs):.2f} mm")
