@@ -80,6 +80,15 @@ def offset_in_stencil(x: wp.vec3, inv_dx: float, base: wp.vec3i):
 
 
 @wp.func
+def stencil(x: wp.vec3, inv_dx: float):
+    """A particle's 3x3x3 stencil: its first node, its offset from that node in cells, and the quadratic
+    B-spline weights along x, y and z."""
+    base = base_node(x, inv_dx)
+    fx = offset_in_stencil(x, inv_dx, base)
+    return base, fx, bspline_weights(fx, 0), bspline_weights(fx, 1), bspline_weights(fx, 2)
+
+
+@wp.func
 def fixed_corotated_kirchhoff(F: wp.mat33, mu: float, lam: float):
     """Kirchhoff stress tau = P F^T of the fixed-corotated model (Pa)."""
     J = wp.determinant(F)
@@ -122,11 +131,7 @@ def p2g(
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x[p]
-    base = base_node(xp, inv_dx)
-    fx = offset_in_stencil(xp, inv_dx, base)
-    wx = bspline_weights(fx, 0)
-    wy = bspline_weights(fx, 1)
-    wz = bspline_weights(fx, 2)
+    base, fx, wx, wy, wz = stencil(xp, inv_dx)
     m = mass[p]
     affine = apic_stress_affine(F[p], C[p], m, vol0[p], mu[p], lam[p], dt, inv_dx)
     mom = m * v[p]
@@ -174,11 +179,7 @@ def p2g_fields(
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x[p]
-    base = base_node(xp, inv_dx)
-    fx = offset_in_stencil(xp, inv_dx, base)
-    wx = bspline_weights(fx, 0)
-    wy = bspline_weights(fx, 1)
-    wz = bspline_weights(fx, 2)
+    base, fx, wx, wy, wz = stencil(xp, inv_dx)
     gx = bspline_slopes(fx, 0, inv_dx)
     gy = bspline_slopes(fx, 1, inv_dx)
     gz = bspline_slopes(fx, 2, inv_dx)
@@ -339,13 +340,9 @@ def g2p(
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x_in[p]
-    base = base_node(xp, inv_dx)
-    fx = offset_in_stencil(xp, inv_dx, base)
+    base, fx, wx, wy, wz = stencil(xp, inv_dx)
     if field_nx > 0:
         base = wp.vec3i(base[0] + field[p] * field_nx, base[1], base[2])
-    wx = bspline_weights(fx, 0)
-    wy = bspline_weights(fx, 1)
-    wz = bspline_weights(fx, 2)
     new_v = wp.vec3(0.0)
     new_C = wp.mat33(0.0)
     for a in range(3):
