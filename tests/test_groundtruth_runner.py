@@ -133,6 +133,7 @@ def test_run_case_end_to_end_cli(tmp_path, capsys):
     (["--slices", "axial:9999"], "axial slice 9999"),
     (["--slices", "diagonal:3"], "unknown slice orientation"),
     (["--deformation", "9"], "deformation must be 1..8"),
+    (["--gt-wait-settled"], "contact protocol only"),
 ])
 def test_run_case_bad_input_exit_2_no_json(tmp_path, capsys, args, msg):
     out = tmp_path / "r.json"

@@ -57,6 +57,24 @@ def test_momentum_conserved_and_uniform_velocity_translates_rigidly():
     assert np.abs(a.F.numpy() - np.eye(3)).max() < 1e-5
 
 
+@pytest.mark.parametrize("dt_scale", [1.0, 0.5])
+def test_fixed_damping_decays_a_rigid_motion_at_its_rate_for_any_step(dt_scale):
+    """A block translating rigidly (no stress) under the fixed damping rate gamma: after n steps of length dt
+    its velocity is v0 exp(-gamma n dt), also when a step is given its own dt (the factor follows the step's
+    length; it was computed once for the model's step)."""
+    pm = block_model((6, 6, 6), (2, 2, 2), "pancreas")
+    m = MPMModel(pm, SolverConfig(damping_per_s=200.0, damping_rule="fixed", **CPU))
+    s = MPMSolver(m)
+    a, b = m.state(), m.state()
+    u = np.array([0.02, -0.01, 0.0], dtype=np.float32)
+    a.v.assign(np.tile(u, (pm.n, 1)))
+    dt = m.dt_s * dt_scale
+    for _ in range(40):
+        s.step(a, b, dt=dt)
+        a, b = b, a
+    np.testing.assert_allclose(a.v.numpy().mean(0), u * np.exp(-200.0 * 40 * dt), rtol=1e-3, atol=1e-7)
+
+
 @pytest.mark.parametrize("organ", ["pancreas", "duodenum"])
 def test_uniaxial_stretch_gives_youngs_modulus(organ):
     nx, ny = 16, 6
@@ -235,3 +253,14 @@ def test_polar_rotation_equals_svd_rotation():
     for f, r in zip(F.astype(np.float64), R.numpy()):
         u, _, vt = np.linalg.svd(f)
         np.testing.assert_allclose(r, u @ vt, atol=2e-5)
+
+
+@pytest.mark.parametrize("kw,msg", [
+    (dict(damping_rule="critical"), "damping_rule must be"),
+    (dict(damping_bounds=(2.0, 4.0)), "damping_bounds must be"),
+    (dict(damping_bounds=(0.1,)), "damping_bounds must be"),
+    (dict(damping_memory_steps=0.5), "damping_memory_steps must be"),
+])
+def test_bad_damping_options_are_refused(kw, msg):
+    with pytest.raises(InputError, match=msg):
+        SolverConfig(**kw)

@@ -361,6 +361,7 @@ class MPMSolver:
         self.status = wp.array(np.array([0, 2**31 - 1, 2**31 - 1], dtype=np.int32), dtype=int, device=d)
         # velocity damping factor per step, on the device so the adaptive rule can change it inside a captured graph
         self.damping = wp.array([math.exp(-model.damping_per_s * model.dt_s)], dtype=float, device=d)
+        self._damping_dt = model.dt_s  # the step length the fixed factor was computed for
         self.adaptive = model.config.damping_rule == "adaptive" if adaptive is None else bool(adaptive)
         if self.adaptive:
             self._accel_prev = wp.zeros(model.n, dtype=wp.vec3, device=d)
@@ -387,6 +388,7 @@ class MPMSolver:
     def reset_damping(self) -> None:
         """Start the adaptive damping afresh (a new frame): the derived value, no memory of past motion."""
         self.damping.assign(np.array([math.exp(-self.model.damping_per_s * self.model.dt_s)], dtype=np.float32))
+        self._damping_dt = self.model.dt_s
         if self.adaptive:
             self._rayleigh.zero_()
             self._rayleigh_memory.zero_()
@@ -407,6 +409,9 @@ class MPMSolver:
         dt = m.dt_s if dt is None else dt
         d = m.device
         force = self.zero_force if control is None else control
+        if not self.adaptive and dt != self._damping_dt:  # a fixed rate: the factor follows the step's length
+            self.damping.assign(np.array([math.exp(-m.damping_per_s * dt)], dtype=np.float32))
+            self._damping_dt = dt
         damping = self.damping
         cfg = m.config
         if self.fields:

@@ -142,6 +142,9 @@ class CaseConfig:
             raise InputError(f"particle step must be an integer >= 1, got {self.particle_step!r}")
         if self.lattice not in ("auto", "voxel", "isotropic"):
             raise InputError(f"unknown particle lattice {self.lattice!r}; use auto, voxel or isotropic")
+        if self.gt_wait_settled and self.protocol != "contact":
+            raise InputError("--gt-wait-settled applies to the contact protocol only: the paper protocol drives every "
+                             "particle, so its ground truth has nothing left to settle; drop it or use --protocol contact")
         if self.gt_contact not in (None, "sticky", "sliding"):
             raise InputError(f"unknown ground-truth contact {self.gt_contact!r}; use sticky or sliding")
         if not _is_int(self.max_steps) or self.max_steps < 1:
