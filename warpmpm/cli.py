@@ -93,6 +93,10 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wait-settled", action="store_true",
                    help="the settled mode: run each estimate on until the whole model has settled, not only the driven slice, with "
                    "adaptive (critical) damping and a PD drive (checked against the FEM reference; slower)")
+    p.add_argument("--solver", default="explicit", choices=["explicit", "quasistatic"],
+                   help="how the estimate's equilibrium is found: explicit MPM steps stopped by the paper's rule (default), or "
+                   "Newton / conjugate-gradient iterations to the settled equilibrium (sticky contact only; the ground truth "
+                   "stays explicit)")
     p.add_argument("--gt-wait-settled", action="store_true",
                    help="contact protocol: simulate the ground truth until its whole body has settled (an elastic equilibrium; slow)")
     p.add_argument("--contact", default="sticky", choices=["sticky", "sliding"],
@@ -172,6 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--wait-settled", action="store_true",
                    help="the settled mode: run each estimate on until the whole model has settled, not only the driven slice, with "
                    "adaptive (critical) damping and a PD drive (checked against the FEM reference; slower)")
+    k.add_argument("--solver", default="explicit", choices=["explicit", "quasistatic"],
+                   help="how each frame's equilibrium is found: explicit MPM steps (default) or Newton / conjugate-gradient "
+                   "iterations to the settled equilibrium")
     k.add_argument("--no-predict", action="store_true",
                    help="start each frame from the last estimate, not from the frame's per-organ motion applied to every particle")
     k.add_argument("--rrd", default=None, help="also write a Rerun recording: the cine frames in their 3D planes beside the estimate")
@@ -255,7 +262,7 @@ def config_from_args(a):
                       organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets, drive=a.drive,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
-                      solver=SolverConfig(contact=a.contact, friction=a.friction))
+                      solver=SolverConfig(contact=a.contact, friction=a.friction, method=a.solver))
 
 
 def cmd_run(a) -> int:
@@ -396,7 +403,8 @@ def cmd_track(a) -> int:
     if not os.path.isdir(parent):
         raise InputError(f"output folder {parent} for --out does not exist")
     cfg = TrackerConfig(organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
-                        predict=not a.no_predict, wait_settled=a.wait_settled, solver=SolverConfig(device=a.device))
+                        predict=not a.no_predict, wait_settled=a.wait_settled,
+                        solver=SolverConfig(device=a.device, method=a.solver))
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
           f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes", file=sys.stderr)

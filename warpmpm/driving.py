@@ -36,6 +36,7 @@ import warp as wp
 from .errors import InputError, SimulationError
 from .model import ParticleModel
 from .slices import DrivingSlice, driven_indices
+from .quasistatic import QuasiStaticSolver
 from .solver import MPMModel, MPMSolver, SolverConfig
 
 
@@ -291,7 +292,11 @@ class DriveResult:
     threshold, stagnation, stalled, max_steps); final_rel_residual; final_rms_mm; gains (resolved,
     physical units); settled and body_motion_mm (the 99th-percentile particle displacement over the
     last TH_S steps: whether the whole model had stopped moving, not only the driven slice);
-    min_det_f (the smallest volume ratio det F of any particle: near 0 or below, an element collapsed).
+    min_det_f (the smallest volume ratio det F of any particle: near 0 or below, an element collapsed);
+    method (``SolverConfig.method``). With the quasi-static method, ``steps`` counts Newton iterations,
+    ``linear_iterations`` their conjugate-gradient iterations (each costs about half an explicit step), the residual
+    histories have one entry per Newton iteration, ``reason`` is ``"settled"`` or ``"max_iterations"`` and
+    ``body_motion_mm`` is the largest particle move of the last iteration.
     """
 
     positions_mm: np.ndarray
@@ -305,6 +310,8 @@ class DriveResult:
     settled: bool = False
     body_motion_mm: float = float("nan")
     min_det_f: float = float("nan")
+    method: str = "explicit"
+    linear_iterations: int = 0
 
     @property
     def final_rel_residual(self) -> float:
@@ -356,6 +363,8 @@ class SliceDrivenEstimator:
         # the "auto" damping and the default integral follow the stopping rule given here (not a per-frame override)
         self.solver = MPMSolver(self.mpm, adaptive=rule == "adaptive" or (rule == "auto" and settle))
         self.solver.set_driven(self.driven)
+        #: the Newton / conjugate-gradient solver of ``SolverConfig(method="quasistatic")``; None: explicit steps
+        self.quasistatic = QuasiStaticSolver(self.mpm, self.mpm.config.quasistatic) if self.mpm.config.method == "quasistatic" else None
         self.drive_config = drive_config or DriveConfig()
         self.gains = self.drive_config.resolve(self.mpm.dt_s, self.mpm.dx_mm, settle=settle)
         d = self.mpm.device
@@ -479,6 +488,8 @@ class SliceDrivenEstimator:
         if axes.shape != (nd, 3, 3) or not np.all(np.isfinite(axes)):
             raise InputError(f"driven axes must be finite projectors of shape ({nd}, 3, 3), got {axes.shape}")
         self._axes.assign(axes.astype(np.float32))
+        if self.quasistatic is not None:
+            return self._estimate_quasistatic(targets_mm, axes)
         conv = ConvergenceMonitor(convergence or self.convergence, stall_mm=0.25 * self.mpm.dx_mm)
         window = conv.config.th_s
         last_x = self.state.x.numpy().copy()  # on the CPU .numpy() is a view of the live buffer
@@ -533,4 +544,31 @@ class SliceDrivenEstimator:
             warnings.warn(f"estimate converged but {collapsed:.1%} of the particles collapsed (det F < 0.1, smallest "
                           f"{min_det:.3f}): the targets compress or fold the tissue beyond what the material model holds",
                           RuntimeWarning, stacklevel=2)
+        return result
+
+    def _estimate_quasistatic(self, targets_mm: np.ndarray, axes: np.ndarray) -> DriveResult:
+        """One frame by the quasi-static solver (:mod:`warpmpm.quasistatic`): the settled equilibrium under the
+        drive's spring; the ConvergenceConfig's rules do not apply (the solver stops when an iteration moves no
+        particle by more than ``QuasiStaticConfig.settle_mm``)."""
+        nd = len(self.driven)
+        t0 = time.perf_counter()
+        self.quasistatic.set_drive(self.driven, targets_mm, axes)
+        res = self.quasistatic.solve(self.state)
+        wall = time.perf_counter() - t0
+        reach = np.einsum("nij,nj->ni", axes, targets_mm - self.particles.center_mm())
+        scale = math.sqrt(max(float(np.sum(reach**2)), 1e-30) / nd)
+        rms = np.asarray(res.rms_history_mm, dtype=np.float64)
+        rel = rms / scale
+        if self.callback is not None:
+            for k in range(len(rms)):
+                self.callback(self, k + 1, float(rel[k]), float(rms[k]))
+        self.frames += 1
+        det = np.linalg.det(self.state.F.numpy().astype(np.float64))
+        result = DriveResult(self.positions_mm(), res.newton_iterations, wall, rel, rms, res.settled,
+                             "settled" if res.settled else "max_iterations", None, res.settled, res.max_move_mm, float(det.min()),
+                             method="quasistatic", linear_iterations=res.cg_iterations)
+        if not res.settled:
+            warnings.warn(f"quasi-static estimate did not settle in {res.newton_iterations} Newton iterations (the last moved a "
+                          f"particle {res.max_move_mm:.3f} mm; QuasiStaticConfig.settle_mm {self.quasistatic.config.settle_mm} mm)",
+                          RuntimeWarning, stacklevel=3)
         return result

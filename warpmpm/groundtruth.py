@@ -121,12 +121,15 @@ def gt_solver_config(base: SolverConfig | None = None, device: str | None = None
     refinement); a Courant number of at most :data:`GT_CFL`; ``dt_s`` cleared, since a time step fixed
     for the estimator's grid is above the finer grid's limit (the GT derives its own stable step);
     ``device`` defaults to ``device``; and the cell may be finer than the particles' largest gap when
-    every particle is driven (the paper protocol; :func:`simulate_gt` turns it back on otherwise).
+    every particle is driven (the paper protocol; :func:`simulate_gt` turns it back on otherwise); and the
+    explicit method whatever the estimator's (``SolverConfig.method``): the truth does not change with the way the
+    estimate is solved.
     """
     b = base or SolverConfig(device=device)
     return replace(b, particles_per_cell=max(1.0, b.particles_per_cell * 0.5),
                    cell_size_mm=None if b.cell_size_mm is None else b.cell_size_mm * 0.5 ** (1.0 / 3.0),
-                   cfl=min(b.cfl, GT_CFL), dt_s=None, device=b.device or device, cell_at_least_gap=False)
+                   cfl=min(b.cfl, GT_CFL), dt_s=None, device=b.device or device, cell_at_least_gap=False,
+                   method="explicit")
 
 
 def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray, *, perturb: bool, seed: int,

@@ -37,6 +37,57 @@ from .model import ParticleModel
 
 
 @dataclass(frozen=True)
+class QuasiStaticConfig:
+    """Settings of the quasi-static solve (:mod:`warpmpm.quasistatic`; ``SolverConfig(method="quasistatic")``)."""
+
+    max_newton_iterations: int = 30
+    """Newton iterations before a frame is reported not settled."""
+    cg_tolerance: float = 1e-2
+    """Relative residual (in the preconditioner's norm) at which each iteration's conjugate-gradient solve stops (an
+    inexact Newton step: the next iteration corrects what this one left)."""
+    max_cg_iterations: int = 300
+    """Conjugate-gradient iterations per Newton iteration at most."""
+    penalty: float = 0.09
+    """Drive stiffness per driven particle, as a multiple of its own stiffness ``(lambda + 2 mu) V0 4/dx^2``. The
+    default 0.09 is the spring of the explicit solver's PD drive (``m Kp`` with its default gains under mass
+    scaling: ``0.36 (lambda + 2 mu) V0 / dx^2``), so both solvers seek the same equilibrium. Measured against the
+    FEM (40 mm blocks, benchmarks/README.md): a stiffer spring pins a single particle layer harder than the grid
+    can follow without stretching its neighbours (scaled soft block 10 % at 0.09, 15 % at 1, 17 % at 10, 18 %
+    exact); rotation 2.5 % at every value."""
+    regularization: float = 1e-3
+    """Mass-proportional term ``k_reg M`` added to the stiffness, as a multiple of the stiffness scale at a full node
+    (an implicit pseudo-time step): a node at a stencil's fringe, which carries little weight, and a part of the body
+    nothing holds stay in place instead of making the system singular. It slows the softest modes, never moves the
+    equilibrium. 1e-4 of the diagonal instead (the first try) let single particles of the phantom swing by metres."""
+    settle_mm: float = 0.01
+    """Settled when an iteration moves no particle by more than this (mm) and the motion still to come, extrapolated
+    from how fast the iterations' moves decay, is below it too (the regularisation slows the softest modes, so a small
+    move alone does not mean the body has arrived)."""
+    drive_tol_mm: float = 0.02
+    """With ``exact_drive``, settled also needs the driven particles' RMS distance to their targets below this (mm)."""
+    exact_drive: bool = False
+    """Update an augmented-Lagrangian multiplier after every iteration so the driven particles end exactly on their
+    targets; False: a pure penalty spring (as the explicit PD drive is one)."""
+    max_move_cells: float = 0.5
+    """An iteration moves no particle by more than this many cells (a longer step is scaled down)."""
+    max_strain_step: float = 0.2
+    """... and changes no particle's deformation by more than this (Frobenius norm of the displacement gradient of
+    the step): the small-strain stiffness is the Hessian at rest, so a longer step could invert an element."""
+
+    def __post_init__(self):
+        for name in ("max_newton_iterations", "max_cg_iterations"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise InputError(f"QuasiStaticConfig.{name} must be a positive integer, got {v!r}")
+        for name in ("cg_tolerance", "penalty", "regularization", "settle_mm", "drive_tol_mm", "max_move_cells", "max_strain_step"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+                raise InputError(f"QuasiStaticConfig.{name} must be a finite number > 0, got {v!r}")
+        if self.cg_tolerance >= 1:
+            raise InputError(f"QuasiStaticConfig.cg_tolerance must be below 1, got {self.cg_tolerance}")
+
+
+@dataclass(frozen=True)
 class SolverConfig:
     """Solver settings (physical units in the names).
 
@@ -94,6 +145,12 @@ class SolverConfig:
         cell_at_least_gap: never make a cell smaller than the largest gap between neighbouring particles
             (default). Only a simulation that drives every particle (the ground truth) may turn it off:
             its layers are held by their targets, not by each other.
+        method: how a frame's equilibrium is found. ``"explicit"`` (default): dynamic relaxation by explicit MLS-MPM
+            steps under the PID drive, stopped by :class:`warpmpm.driving.ConvergenceConfig` (the paper's method).
+            ``"quasistatic"``: Newton iterations with a matrix-free conjugate-gradient solve on the same grid
+            (:mod:`warpmpm.quasistatic`): the settled equilibrium directly, in a fraction of the time the explicit
+            solver needs to wait for it (benchmarks/README.md); sticky contact only.
+        quasistatic: settings of the ``"quasistatic"`` method.
     """
 
     particles_per_cell: float = 4.0
@@ -115,6 +172,8 @@ class SolverConfig:
     contact: Literal["sticky", "sliding"] = "sticky"
     friction: float = 0.0
     bonded: tuple[tuple[str, ...], ...] = (("pancreas", "duodenum"),)
+    method: Literal["explicit", "quasistatic"] = "explicit"
+    quasistatic: QuasiStaticConfig = QuasiStaticConfig()
 
     def __post_init__(self):
         def finite(name, lo=0.0, strict=True, optional=False):
@@ -141,6 +200,12 @@ class SolverConfig:
                 or not 0 < lo_hi[0] <= 1 <= lo_hi[1]):
             raise InputError(f"SolverConfig.damping_bounds must be (low, high) with 0 < low <= 1 <= high, got {lo_hi!r}")
         finite("damping_memory_steps", lo=1.0, strict=False)
+        if self.method not in ("explicit", "quasistatic"):
+            raise InputError(f"SolverConfig.method must be 'explicit' or 'quasistatic', got {self.method!r}")
+        if not isinstance(self.quasistatic, QuasiStaticConfig):
+            raise InputError(f"SolverConfig.quasistatic must be a QuasiStaticConfig, got {type(self.quasistatic).__name__}")
+        if self.method == "quasistatic" and self.contact != "sticky":
+            raise InputError("SolverConfig.method 'quasistatic' handles sticky contact only; use contact='sticky' or the explicit method")
         if self.contact not in ("sticky", "sliding"):
             raise InputError(f"SolverConfig.contact must be 'sticky' or 'sliding', got {self.contact!r}")
         groups = self.bonded

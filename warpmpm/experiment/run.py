@@ -91,7 +91,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
     out = RunResult(
         case=prep.case.name, organs=model.letters, slices=[str(prep.to_input(s)) for s in slices], protocol=cfg.protocol,
         deformation=cfg.deformation, targets=cfg.targets, device=str(est.mpm.device), n_particles=model.counts(),
-        n_driven=int(len(idx)), excluded_driven=bool(exclude_driven), solver=est.mpm.summary(), gains=res.gains.to_json(),
+        n_driven=int(len(idx)), excluded_driven=bool(exclude_driven), solver=est.mpm.summary(), gains=res.gains.to_json() if res.gains else None,
         gt={k: v for k, v in gt.params.items() if k not in ("A",)} | {"steps": gt.steps, "wall_s": gt.wall_s},
         results=results, registration=tg.registration, positions_mm=res.positions_mm, drive=cfg.drive if cfg.targets != "gt" else "3d",
         target_in_plane_error_mm=tg.in_plane_error_mm)
