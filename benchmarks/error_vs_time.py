@@ -11,7 +11,7 @@ from captured targets to 3D estimate, each frame from the last, and reports per-
 (median, p95) and error.
 
     python benchmarks/error_vs_time.py --out benchmarks/error_vs_time.png
-    python benchmarks/error_vs_time.py --stream 20
+    python benchmarks/error_vs_time.py --stream 20 [--solver explicit,quasistatic]
 """
 
 from __future__ import annotations
@@ -94,6 +94,22 @@ def pareto(rows):
 
 
 def stream(a, device):
+    """``--stream N``: one row per solver of ``--solver`` (same run), latency and error per frame; raw ``results/stream.json``."""
+    rows = {}
+    for method in a.solver.split(","):
+        print(f"solver {method}:")
+        rows[method] = stream_one(a, device, method)
+    raw.save("stream", rows | {"solvers": list(rows)})
+    base = rows[a.solver.split(",")[0]]
+    print("\n| solver | median latency ms | p95 ms | first frame ms | median steps (Newton iterations) | mean error mm | latency / first solver's |")
+    print("|---|---|---|---|---|---|---|")
+    for method, r in rows.items():
+        lat = np.array(r["latency_s"])
+        print(f"| {method} | {np.median(lat) * 1e3:.0f} | {np.percentile(lat, 95) * 1e3:.0f} | {lat[0] * 1e3:.0f} | {np.median(r['steps']):.0f} | "
+              f"{np.mean(r['error_mm']):.2f} | {np.median(lat) / np.median(base['latency_s']):.2f} |")
+
+
+def stream_one(a, device, method):
     prep = prepare_case(CaseConfig(labels=a.labels, image=a.image, preset=a.preset, phantom_resolution=a.phantom_resolution,
                                    particle_step=int(a.steps.split(",")[0]), device=device))
     model = prep.full_model
@@ -112,7 +128,7 @@ def stream(a, device):
         t0 = time.perf_counter()
         if est is None:
             idx, _ = affine_targets(model, model.positions_mm, sl, [InPlaneAffine(A)], prep.centre_mm)
-            est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(device=device), extra_points_mm=truth)
+            est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(device=device, method=method), extra_points_mm=truth)
         res = est.estimate(truth[idx])
         lat.append(time.perf_counter() - t0)
         steps.append(res.steps)
@@ -120,10 +136,10 @@ def stream(a, device):
         errs.append(np.linalg.norm(res.positions_mm[pan] - truth[pan], axis=1).mean())
         print(f"  frame {f}: {lat[-1] * 1e3:.0f} ms, {res.steps} steps, error {errs[-1]:.2f} mm", flush=True)
     lat = np.array(lat)
-    raw.save("stream", {"particles": model.n, "latency_s": lat.tolist(), "steps": steps, "error_mm": [float(e) for e in errs]})
     print(f"\nstreaming {a.stream} frames, {model.n} particles on {device}: latency median {np.median(lat) * 1e3:.0f} ms, "
           f"p95 {np.percentile(lat, 95) * 1e3:.0f} ms (first frame {lat[0] * 1e3:.0f} ms, from rest); "
           f"median steps {np.median(steps):.0f}; mean error {np.mean(errs):.2f} mm")
+    return {"particles": model.n, "latency_s": lat.tolist(), "steps": steps, "error_mm": [float(e) for e in errs]}
 
 
 def main(argv=None):
@@ -139,6 +155,7 @@ def main(argv=None):
     p.add_argument("--no-legacy", action="store_true", help="leave out the row with the settings before tuning")
     p.add_argument("--device", default=None)
     p.add_argument("--stream", type=int, default=0)
+    p.add_argument("--solver", default="explicit", help="--stream: solvers to compare, comma-separated (explicit, quasistatic)")
     p.add_argument("--out", default="benchmarks/error_vs_time.png")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines

@@ -1,7 +1,7 @@
 """The MPM equilibrium against an independent finite-element solve (issue 17): one axial slice of a block
 scaled 1.05, rotated 3 degrees or sheared 3 degrees in plane, everything else free.
 
-    python benchmarks/fem_reference.py [--size 20,20,21] [--ppc-sweep]
+    python benchmarks/fem_reference.py [--size 20,20,21] [--ppc-sweep | --grid-shift | --quasistatic]
 
 Scenes: a soft (pancreas) block, a bonded pancreas + left kidney block and a pancreas + duodenum block
 (~3000x stiffer), 2 mm particles. The FEM
@@ -10,7 +10,8 @@ parameters, the driven slice a Dirichlet condition) is the reference; the figure
 difference of the non-driven particles' displacement, at the default stopping rule, once the whole
 body has settled (``wait_settled``: the settled mode, adaptive damping and a PD drive; and each of its two
 changes alone against the fixed damping and PID drive it replaced), and run on to a fixed 6,000 steps (does
-the answer drift?). ``--grid-shift``: the soft block moved by 0, 1/4 and 1/2 cell against the grid. ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
+the answer drift?). ``--grid-shift``: the soft block moved by 0, 1/4 and 1/2 cell against the grid. ``--quasistatic``: the settled mode's explicit solver beside the quasi-static one (:mod:`warpmpm.quasistatic`), same
+run, with the time ratio. ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
 and 8 particles per cell, with the error by distance from the slice (in-plane and through-plane parts).
 """
 
@@ -51,6 +52,11 @@ RULES = [("default stop", SolverConfig(device="cpu"), ConvergenceConfig(), None)
          ("6,000 steps, adaptive damping, PD", ADAPTIVE, ConvergenceConfig(th_v=1e-12, th_d=12, max_steps=6000), PD)]
 
 
+#: the settled mode's two solvers side by side (``--quasistatic``): explicit dynamic relaxation and Newton / CG
+SOLVERS = [("settled, explicit (adaptive damping, PD)", SolverConfig(device="cpu"), SETTLED, None),
+           ("quasi-static (Newton / CG)", SolverConfig(device="cpu", method="quasistatic"), ConvergenceConfig(), None)]
+
+
 def scenes(size):
     nx, ny, nz = size
     soft = block_model((nx, ny, nz), (2.0, 2.0, 2.0), "pancreas")
@@ -84,7 +90,8 @@ def compare(model, load, rule):
             "mean_error_mm": float(np.linalg.norm(e[free], axis=1).mean()), "steps": r.steps, "wall_s": wall,
             "slice_rms_residual_mm": r.final_rms_mm,
             "slice_rms_motion_mm": float(np.sqrt(np.mean(np.sum((tg - model.positions_mm[idx]) ** 2, axis=1)))),
-            "settled": r.settled, "dx_mm": est.mpm.dx_mm, "by_layer_distance": by_distance}
+            "settled": r.settled, "dx_mm": est.mpm.dx_mm, "by_layer_distance": by_distance, "method": r.method,
+            "linear_iterations": r.linear_iterations}
 
 
 def main(argv=None):
@@ -92,6 +99,7 @@ def main(argv=None):
     p.add_argument("--size", default="20,20,21", help="block size in particles (x, y, z)")
     p.add_argument("--ppc-sweep", action="store_true", help="only the particles-per-cell sweep of the scaled soft block")
     p.add_argument("--grid-shift", action="store_true", help="only the soft block moved by 0, 1/4 and 1/2 cell against the grid")
+    p.add_argument("--quasistatic", action="store_true", help="only the settled mode's explicit solver against the quasi-static one")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR
     warnings.simplefilter("ignore")
@@ -100,17 +108,20 @@ def main(argv=None):
         return ppc_sweep(size)
     if a.grid_shift:
         return grid_shift(size)
+    rules = SOLVERS if a.quasistatic else RULES
     rows = []
-    print("| scene | load | " + " | ".join(r[0] for r in RULES) + " |")
-    print("|---|---|" + "---|" * len(RULES))
+    print("| scene | load | " + " | ".join(r[0] for r in rules) + (" | time, quasi-static / explicit |" if a.quasistatic else " |"))
+    print("|---|---|" + "---|" * (len(rules) + int(a.quasistatic)))
     for sname, model in scenes(size).items():
         for lname, load in LOADS.items():
-            res = [compare(model, load, rule) for rule in RULES]
+            res = [compare(model, load, rule) for rule in rules]
             rows.append({"scene": sname, "load": lname, "particles": model.n,
-                         "results": {rule[0]: r for rule, r in zip(RULES, res)}})
-            cells = " | ".join(f"{100 * r['rel_l2']:.0f} % ({r['steps']} steps)" for r in res)
-            print(f"| {sname} | {lname} | {cells} |", flush=True)
-    raw.save("fem_reference", rows)
+                         "results": {rule[0]: r for rule, r in zip(rules, res)}})
+            cells = " | ".join(f"{100 * r['rel_l2']:.1f} % ({r['steps']} {'iterations' if r['method'] == 'quasistatic' else 'steps'}, "
+                               f"{r['wall_s']:.1f} s)" for r in res)
+            ratio = f" | {res[1]['wall_s'] / res[0]['wall_s']:.2f}" if a.quasistatic else ""
+            print(f"| {sname} | {lname} | {cells}{ratio} |", flush=True)
+    raw.save("fem_quasistatic" if a.quasistatic else "fem_reference", rows)
 
 
 def ppc_sweep(size):
