@@ -214,6 +214,7 @@ def test_a_non_finite_residual_is_a_simulation_error():
     (["--particle-step", "1000"], "particle sampling step 1000 leaves no particle of the"),
     (["--rrd-every", "0"], "--rrd-every must be an integer >= 1"),
     (["--slices", "auto:zz"], "unknown --slices"),
+    (["--solver", "quasistatic", "--contact", "sliding"], "handles sticky contact only"),
 ])
 def test_bad_values_are_one_line_errors(tmp_path, capsys, args, msg):
     code = run_main(TINY + ["--json", str(tmp_path / "o.json")] + args)

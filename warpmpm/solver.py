@@ -373,6 +373,7 @@ class MPMModel:
             "wave_speed_m_s": self.wave_speed_m_s,
             "damping_per_s": self.damping_per_s,
             "mass_scaling": self.config.mass_scaling,
+            "method": self.config.method,
             "device": str(self.device),
         }
 
