@@ -207,7 +207,8 @@ CG_CHECK_EVERY = 10
 @wp.kernel
 def cg_start(b: wp.array(dtype=wp.vec3), inv_diag: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3),
              z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), scalars: wp.array(dtype=wp.float64)):
-    """``x = 0``, ``r = b``, ``z = M r``, ``p = z``; ``scalars[RZ] += r.z``, ``scalars[RR] += r.r``."""
+    """``x = 0``, ``r = b``, ``z = D^-1 r``, ``p = z``; ``scalars[RZ] += r.z``, ``scalars[RR] += r.r`` (with a coarse
+    correction, :func:`cg_dot` recomputes r.z and sets p once it is added)."""
     i = wp.tid()
     ri = b[i]
     zi = wp.cw_mul(inv_diag[i], ri)
@@ -220,8 +221,65 @@ def cg_start(b: wp.array(dtype=wp.vec3), inv_diag: wp.array(dtype=wp.vec3), x: w
 
 
 @wp.kernel
+def cg_dot(r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), slot: int, set_p: int,
+           scalars: wp.array(dtype=wp.float64)):
+    """``scalars[slot] += r.z`` over the nodes (after a coarse correction changed z); ``p = z`` with ``set_p``."""
+    i = wp.tid()
+    zi = z[i]
+    wp.atomic_add(scalars, slot, wp.float64(wp.dot(r[i], zi)))
+    if set_p != 0:
+        p[i] = zi
+
+
+@wp.kernel
+def coarse_restrict(Z: wp.array(dtype=wp.vec3, ndim=2), nodes: wp.array(dtype=int), r: wp.array(dtype=wp.vec3),
+                    t: wp.array(dtype=wp.float64)):
+    """``t += Z^T r`` over the nodes particles touch (``Z[a, j]``: mode j at node ``nodes[a]``)."""
+    a = wp.tid()
+    ri = r[nodes[a]]
+    for j in range(Z.shape[1]):
+        wp.atomic_add(t, j, wp.float64(wp.dot(Z[a, j], ri)))
+
+
+@wp.kernel
+def coarse_solve(E_inv: wp.array(dtype=wp.float64, ndim=2), t: wp.array(dtype=wp.float64), y: wp.array(dtype=wp.float64)):
+    """``y = E^-1 t`` (one thread a coarse unknown), then the next restriction may start afresh in ``t``."""
+    j = wp.tid()
+    acc = wp.float64(0.0)
+    for l in range(E_inv.shape[1]):
+        acc += E_inv[j, l] * t[l]
+    y[j] = acc
+
+
+@wp.kernel
+def coarse_prolong(Z: wp.array(dtype=wp.vec3, ndim=2), nodes: wp.array(dtype=int), y: wp.array(dtype=wp.float64),
+                   z: wp.array(dtype=wp.vec3)):
+    """``z += Z y``: the coarse correction added to the Jacobi one (a two-level additive preconditioner)."""
+    a = wp.tid()
+    acc = wp.vec3(0.0)
+    for j in range(Z.shape[1]):
+        acc += float(y[j]) * Z[a, j]
+    i = nodes[a]
+    z[i] = z[i] + acc
+
+
+@wp.kernel
+def organ_node_mass(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), organ: wp.array(dtype=int), dx: float, ny: int, nz: int,
+                    out: wp.array(dtype=float, ndim=2)):
+    """``out[node, organ]``: each organ's share of the nodal mass (kg)."""
+    p = wp.tid()
+    inv_dx = 1.0 / dx
+    base, fx, wx, wy, wz = kernels.stencil(x[p], inv_dx)
+    o = organ[p]
+    for a in range(3):
+        for b in range(3):
+            for cc in range(3):
+                wp.atomic_add(out, node_index(base[0] + a, base[1] + b, base[2] + cc, ny, nz), o, wx[a] * wy[b] * wz[cc] * mass[p])
+
+
+@wp.kernel
 def cg_advance(inv_diag: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), Ap: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3),
-               r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3), scalars: wp.array(dtype=wp.float64)):
+               r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3), rz_here: int, scalars: wp.array(dtype=wp.float64)):
     """``alpha = r.z / p.Ap``; ``x += alpha p``, ``r -= alpha A p``, ``z = M r``; ``scalars[RZ_NEXT] += r.z``, ``[RR] += r.r``."""
     i = wp.tid()
     pap = scalars[PAP]
@@ -233,7 +291,8 @@ def cg_advance(inv_diag: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), Ap
     zi = wp.cw_mul(inv_diag[i], ri)
     r[i] = ri
     z[i] = zi
-    wp.atomic_add(scalars, RZ_NEXT, wp.float64(wp.dot(ri, zi)))
+    if rz_here != 0:
+        wp.atomic_add(scalars, RZ_NEXT, wp.float64(wp.dot(ri, zi)))
     wp.atomic_add(scalars, RR, wp.float64(wp.dot(ri, ri)))
 
 
@@ -382,6 +441,8 @@ class QuasiStaticSolver:
         mu = model.particles.per_particle("mu_pa")
         self._stiffness = (lam + 2 * mu) * model.particles.volume_mm3 * 1e-9 * 4.0 / self._dx**2  # N/m per particle
         self._state = None
+        self._organ = wp.array(model.particles.organ_index.astype(np.int32), dtype=int, device=d)
+        self._coarse_nodes = None
 
     def _conjugate_gradient(self, state: State, k_reg: float) -> int:
         """Solve ``(K + eps D) du = force`` by Jacobi-preconditioned CG (``du`` starts at zero); the iterations it took.
@@ -392,6 +453,11 @@ class QuasiStaticSolver:
         sc = self._scalars
         sc.zero_()
         wp.launch(cg_start, nn, [self.force, self.inv_diag, self.du, self._r, self._z, self._p, sc], device=d)
+        coarse = self._coarse_nodes is not None
+        if coarse:
+            sc.zero_()
+            self._coarse_correct()
+            wp.launch(cg_dot, nn, [self._r, self._z, self._p, RZ, 1, sc], device=d)
         rz0 = float(sc.numpy()[RZ])
         if rz0 == 0.0:
             return 0
@@ -406,7 +472,10 @@ class QuasiStaticSolver:
                 wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz,
                                                  self._p, self._Ap], device=d)
                 wp.launch(finish_matvec, nn, [self._Ap, self._p, self.node_mass, k_reg, sc], device=d)
-                wp.launch(cg_advance, nn, [self.inv_diag, self._p, self._Ap, self.du, self._r, self._z, sc], device=d)
+                wp.launch(cg_advance, nn, [self.inv_diag, self._p, self._Ap, self.du, self._r, self._z, int(not coarse), sc], device=d)
+                if coarse:
+                    self._coarse_correct()
+                    wp.launch(cg_dot, nn, [self._r, self._z, self._p, RZ_NEXT, 0, sc], device=d)
                 wp.launch(cg_direction, nn, [self._z, self._p, sc], device=d)
                 wp.launch(cg_next, 1, [sc], device=d)
                 it += 1
@@ -416,6 +485,64 @@ class QuasiStaticSolver:
             if rz <= goal:
                 break
         return it
+
+    def _coarse_correct(self) -> None:
+        """``z += Z E^-1 Z^T r`` (device only)."""
+        d = self.model.device
+        self._coarse_t.zero_()
+        na = self._coarse_nodes.shape[0]
+        wp.launch(coarse_restrict, na, [self._coarse_Z, self._coarse_nodes, self._r, self._coarse_t], device=d)
+        wp.launch(coarse_solve, self._coarse_Z.shape[1], [self._coarse_E_inv, self._coarse_t, self._coarse_y], device=d)
+        wp.launch(coarse_prolong, na, [self._coarse_Z, self._coarse_nodes, self._coarse_y, self._z], device=d)
+
+    def _build_coarse(self, state: State, k_reg: float) -> None:
+        """The coarse space of the two-level preconditioner: each organ's rigid motions (3 translations, 3 rotations
+        about its centre) on the nodes its particles touch, weighed by its share of each node's mass; and the coarse
+        matrix ``E = Z^T A Z`` (one matrix-vector product per mode), inverted on the host in float64."""
+        m, d, nn = self.model, self.model.device, self.n_nodes
+        n_org = len(m.particles.organs)
+        share = wp.zeros((nn, n_org), dtype=float, device=d)
+        wp.launch(organ_node_mass, m.n, [state.x, m.mass, self._organ, self._dx, self._ny, self._nz, share], device=d)
+        share = share.numpy().astype(np.float64)
+        total = share.sum(1)
+        nodes = np.nonzero(total > 0)[0]
+        alpha = share[nodes] / total[nodes, None]
+        ny, nz = self._ny, self._nz
+        X = np.stack([nodes // (ny * nz), (nodes // nz) % ny, nodes % nz], axis=1) * self._dx
+        modes = []
+        for o in range(n_org):
+            a = alpha[:, o]
+            if a.sum() == 0:
+                continue
+            c = (X * a[:, None]).sum(0) / a.sum()
+            R = X - c
+            L = max(float(np.sqrt((a * (R**2).sum(1)).sum() / a.sum())), self._dx)
+            for k in range(3):
+                e = np.zeros(3)
+                e[k] = 1.0
+                modes.append(a[:, None] * e)
+                modes.append(a[:, None] * np.cross(e, R) / L)
+        Z = np.stack(modes, axis=1).astype(np.float32)  # (n_active, k, 3)
+        k = Z.shape[1]
+        AZ = np.empty_like(Z, dtype=np.float64)
+        v = wp.zeros(nn, dtype=wp.vec3, device=d)
+        sc = wp.zeros(6, dtype=wp.float64, device=d)
+        for j in range(k):
+            col = np.zeros((nn, 3), dtype=np.float32)
+            col[nodes] = Z[:, j]
+            v.assign(col)
+            self._Ap.zero_()
+            wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz, v,
+                                             self._Ap], device=d)
+            wp.launch(finish_matvec, nn, [self._Ap, v, self.node_mass, k_reg, sc], device=d)
+            AZ[:, j] = self._Ap.numpy()[nodes]
+        E = np.einsum("ajc,alc->jl", Z.astype(np.float64), AZ)
+        E = 0.5 * (E + E.T)
+        self._coarse_nodes = wp.array(nodes.astype(np.int32), dtype=int, device=d)
+        self._coarse_Z = wp.array(Z, dtype=wp.vec3, device=d)
+        self._coarse_E_inv = wp.array(np.linalg.pinv(E, rcond=1e-10), dtype=wp.float64, device=d)
+        self._coarse_t = wp.zeros(k, dtype=wp.float64, device=d)
+        self._coarse_y = wp.zeros(k, dtype=wp.float64, device=d)
 
     def set_drive(self, driven: np.ndarray, targets_mm: np.ndarray, axes: np.ndarray) -> None:
         """The driven particles, their targets (world mm) and the projectors of the directions each is driven along."""
@@ -457,6 +584,8 @@ class QuasiStaticSolver:
                                                        self.node_mass], device=d)
             k_reg = self._k_reg * reg
             wp.launch(inverse_diagonal, self.n_nodes, [self.diag, self.node_mass, k_reg, self.inv_diag], device=d)
+            if cfg.coarse_modes == "rigid":
+                self._build_coarse(state, k_reg)
             cg_total += self._conjugate_gradient(state, k_reg)
             # the step's longest particle move (nodes at a stencil's fringe may move far: they carry almost no weight)
             wp.launch(move_particles, m.n, [self.du, 1.0, 0, self._dx, self._ny, self._nz, self._x_min, self._x_max, state.x, state.F,

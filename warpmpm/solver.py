@@ -70,6 +70,9 @@ class QuasiStaticConfig:
     targets; False: a pure penalty spring (as the explicit PD drive is one)."""
     max_move_cells: float = 0.5
     """An iteration moves no particle by more than this many cells (a longer step is scaled down)."""
+    coarse_modes: Literal["none", "rigid"] = "rigid"
+    """Two-level preconditioner: ``"rigid"`` adds a coarse correction over each organ's rigid motions to the Jacobi one
+    (the slow modes of a scene whose stiff organs hang on a soft one); ``"none"``: Jacobi alone."""
     max_strain_step: float = 0.2
     """... and changes no particle's deformation by more than this (Frobenius norm of the displacement gradient of
     the step): the small-strain stiffness is the Hessian at rest, so a longer step could invert an element."""
@@ -83,6 +86,8 @@ class QuasiStaticConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
                 raise InputError(f"QuasiStaticConfig.{name} must be a finite number > 0, got {v!r}")
+        if self.coarse_modes not in ("none", "rigid"):
+            raise InputError(f"QuasiStaticConfig.coarse_modes must be 'none' or 'rigid', got {self.coarse_modes!r}")
         if self.cg_tolerance >= 1:
             raise InputError(f"QuasiStaticConfig.cg_tolerance must be below 1, got {self.cg_tolerance}")
 
