@@ -117,6 +117,9 @@ def cases(d):
         ("train: missing CSV", w + ["train", f"{d}/nope.csv"], "error"),
         ("cfl 3 (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; SolverConfig(cfl=3)"], "error"),
         ("cfl 0 (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; SolverConfig(cfl=0)"], "error"),
+        ("quasi-static with sliding contact", run + ["--solver", "quasistatic", "--contact", "sliding"], "error"),
+        ("quasi-static: CG tolerance 2 (API)", ["python", "-c", "from warpmpm.solver import QuasiStaticConfig; "
+                                                "QuasiStaticConfig(cg_tolerance=2.0)"], "error"),
         ("NaN extra points (API)", ["python", "-c", "import numpy as np; from warpmpm.scenes import block_model; "
                                     "from warpmpm.solver import MPMModel, SolverConfig; "
                                     "MPMModel(block_model((3,3,3)), SolverConfig(device='cpu'), np.full((1,3), np.nan))"], "error"),
