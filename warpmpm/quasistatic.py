@@ -79,6 +79,26 @@ def node_index(i: int, j: int, k: int, ny: int, nz: int):
     return (i * ny + j) * nz + k
 
 
+@wp.func
+def gather(u: wp.array(dtype=wp.vec3), xp: wp.vec3, dx: float, ny: int, nz: int):
+    """A nodal field ``u`` at a particle at ``xp``: its MLS gradient ``G = 4/dx^2 sum_i w_ip u_i (x_i - x_p)^T`` and its
+    interpolated value ``sum_i w_ip u_i``."""
+    inv_dx = 1.0 / dx
+    base, fx, wx, wy, wz = kernels.stencil(xp, inv_dx)
+    c = 4.0 * inv_dx * inv_dx
+    G = wp.mat33(0.0)
+    up = wp.vec3(0.0)
+    for a in range(3):
+        for b in range(3):
+            for cc in range(3):
+                w = wx[a] * wy[b] * wz[cc]
+                r = (wp.vec3(float(a), float(b), float(cc)) - fx) * dx
+                ui = u[node_index(base[0] + a, base[1] + b, base[2] + cc, ny, nz)]
+                G += (c * w) * wp.outer(ui, r)
+                up += w * ui
+    return G, up
+
+
 @wp.kernel
 def internal_and_drive_forces(
     x: wp.array(dtype=wp.vec3),
@@ -146,18 +166,9 @@ def apply_stiffness(
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x[p]
+    G, vp = gather(v, xp, dx, ny, nz)
     base, fx, wx, wy, wz = kernels.stencil(xp, inv_dx)
     c = 4.0 * inv_dx * inv_dx
-    G = wp.mat33(0.0)
-    vp = wp.vec3(0.0)
-    for a in range(3):
-        for b in range(3):
-            for cc in range(3):
-                w = wx[a] * wy[b] * wz[cc]
-                r = (wp.vec3(float(a), float(b), float(cc)) - fx) * dx
-                vi = v[node_index(base[0] + a, base[1] + b, base[2] + cc, ny, nz)]
-                G += (c * w) * wp.outer(vi, r)
-                vp += w * vi
     dtau = mu[p] * (G + wp.transpose(G)) + (lam[p] * (G[0, 0] + G[1, 1] + G[2, 2])) * wp.identity(n=3, dtype=float)
     s = (c * vol0[p]) * dtau
     fd = pen_k[p] * (pen_P[p] * vp)
@@ -353,20 +364,10 @@ def move_particles(
     ``move`` gets each particle's move (m). With ``apply`` 0 only ``move`` is written (to size the step). A
     non-finite result or a particle leaving the grid is flagged in ``status`` ([code, first particle]) and not applied."""
     p = wp.tid()
-    inv_dx = 1.0 / dx
     xp = x[p]
-    base, fx, wx, wy, wz = kernels.stencil(xp, inv_dx)
-    c = 4.0 * inv_dx * inv_dx
-    G = wp.mat33(0.0)
-    up = wp.vec3(0.0)
-    for a in range(3):
-        for b in range(3):
-            for cc in range(3):
-                w = wx[a] * wy[b] * wz[cc]
-                r = (wp.vec3(float(a), float(b), float(cc)) - fx) * dx
-                ui = scale * du[node_index(base[0] + a, base[1] + b, base[2] + cc, ny, nz)]
-                G += (c * w) * wp.outer(ui, r)
-                up += w * ui
+    G1, u1 = gather(du, xp, dx, ny, nz)
+    G = scale * G1
+    up = scale * u1
     new_x = xp + up
     F_new = (wp.identity(n=3, dtype=float) + G) * F[p]
     if apply == 0:
