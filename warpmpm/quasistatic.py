@@ -186,10 +186,10 @@ def finish_matvec(
     v: wp.array(dtype=wp.vec3),
     node_mass: wp.array(dtype=float),
     k_reg: float,
-    scalars: wp.array(dtype=wp.float64),
+    partial: wp.array(dtype=wp.float64, ndim=2),
 ):
     """``Av <- A v`` with ``A = K + k_reg M`` on the nodes particles touch and the identity elsewhere (an untouched
-    node has no force and keeps a zero displacement); ``scalars[PAP] += v . A v``."""
+    node has no force and keeps a zero displacement); ``v . A v`` into ``partial[PAP]``."""
     i = wp.tid()
     mi = node_mass[i]
     vi = v[i]
@@ -197,7 +197,7 @@ def finish_matvec(
     if mi > 0.0:
         a = Av[i] + (k_reg * mi) * vi
     Av[i] = a
-    wp.atomic_add(scalars, PAP, wp.float64(wp.dot(vi, a)))
+    add_partial(partial, PAP, i, wp.float64(wp.dot(vi, a)))
 
 
 @wp.kernel
@@ -229,11 +229,32 @@ COARSE_AFTER = 20
 #: conjugate-gradient iterations between two host reads of the residual
 CG_CHECK_EVERY = 10
 
+#: slots each dot product of the conjugate gradient is spread over (by node index), then summed by one thread: a GPU
+#: would serialise ~130,000 atomics on one address an iteration otherwise (benchmarks/README.md)
+DOT_SLOTS = 64
+
+
+@wp.func
+def add_partial(partial: wp.array(dtype=wp.float64, ndim=2), row: int, i: int, value: wp.float64):
+    """Add a node's share of the sum ``row`` into slot ``i % DOT_SLOTS``."""
+    wp.atomic_add(partial, row, i % partial.shape[1], value)
+
+
+@wp.kernel
+def cg_reduce(partial: wp.array(dtype=wp.float64, ndim=2), scalars: wp.array(dtype=wp.float64)):
+    """One thread: add every row of ``partial`` into ``scalars`` and clear it."""
+    for row in range(partial.shape[0]):
+        acc = wp.float64(0.0)
+        for k in range(partial.shape[1]):
+            acc += partial[row, k]
+            partial[row, k] = wp.float64(0.0)
+        scalars[row] = scalars[row] + acc
+
 
 @wp.kernel
 def cg_start(b: wp.array(dtype=wp.vec3), inv_diag: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3), r: wp.array(dtype=wp.vec3),
-             z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), scalars: wp.array(dtype=wp.float64)):
-    """``x = 0``, ``r = b``, ``z = D^-1 r``, ``p = z``; ``scalars[RZ] += r.z``, ``scalars[RR] += r.r`` (with a coarse
+             z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), partial: wp.array(dtype=wp.float64, ndim=2)):
+    """``x = 0``, ``r = b``, ``z = D^-1 r``, ``p = z``; r.z and r.r into ``partial[RZ]``, ``partial[RR]`` (with a coarse
     correction, :func:`cg_dot` recomputes r.z and sets p once it is added)."""
     i = wp.tid()
     ri = b[i]
@@ -242,17 +263,17 @@ def cg_start(b: wp.array(dtype=wp.vec3), inv_diag: wp.array(dtype=wp.vec3), x: w
     r[i] = ri
     z[i] = zi
     p[i] = zi
-    wp.atomic_add(scalars, RZ, wp.float64(wp.dot(ri, zi)))
-    wp.atomic_add(scalars, RR, wp.float64(wp.dot(ri, ri)))
+    add_partial(partial, RZ, i, wp.float64(wp.dot(ri, zi)))
+    add_partial(partial, RR, i, wp.float64(wp.dot(ri, ri)))
 
 
 @wp.kernel
 def cg_dot(r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), slot: int, set_p: int,
-           scalars: wp.array(dtype=wp.float64)):
-    """``scalars[slot] += r.z`` over the nodes (after a coarse correction changed z); ``p = z`` with ``set_p``."""
+           partial: wp.array(dtype=wp.float64, ndim=2)):
+    """r.z over the nodes into ``partial[slot]`` (after a coarse correction changed z); ``p = z`` with ``set_p``."""
     i = wp.tid()
     zi = z[i]
-    wp.atomic_add(scalars, slot, wp.float64(wp.dot(r[i], zi)))
+    add_partial(partial, slot, i, wp.float64(wp.dot(r[i], zi)))
     if set_p != 0:
         p[i] = zi
 
@@ -305,8 +326,9 @@ def organ_node_mass(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), org
 
 @wp.kernel
 def cg_advance(inv_diag: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), Ap: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3),
-               r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3), rz_here: int, scalars: wp.array(dtype=wp.float64)):
-    """``alpha = r.z / p.Ap``; ``x += alpha p``, ``r -= alpha A p``, ``z = M r``; ``scalars[RZ_NEXT] += r.z``, ``[RR] += r.r``."""
+               r: wp.array(dtype=wp.vec3), z: wp.array(dtype=wp.vec3), rz_here: int, scalars: wp.array(dtype=wp.float64),
+               partial: wp.array(dtype=wp.float64, ndim=2)):
+    """``alpha = r.z / p.Ap``; ``x += alpha p``, ``r -= alpha A p``, ``z = M r``; the new r.z and r.r into ``partial``."""
     i = wp.tid()
     pap = scalars[PAP]
     alpha = float(0.0)
@@ -318,8 +340,8 @@ def cg_advance(inv_diag: wp.array(dtype=wp.vec3), p: wp.array(dtype=wp.vec3), Ap
     r[i] = ri
     z[i] = zi
     if rz_here != 0:
-        wp.atomic_add(scalars, RZ_NEXT, wp.float64(wp.dot(ri, zi)))
-    wp.atomic_add(scalars, RR, wp.float64(wp.dot(ri, ri)))
+        add_partial(partial, RZ_NEXT, i, wp.float64(wp.dot(ri, zi)))
+    add_partial(partial, RR, i, wp.float64(wp.dot(ri, ri)))
 
 
 @wp.kernel
@@ -443,6 +465,7 @@ class QuasiStaticSolver:
         self._p = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._Ap = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._scalars = wp.zeros(6, dtype=wp.float64, device=d)
+        self._partial = wp.zeros((6, DOT_SLOTS), dtype=wp.float64, device=d)
         self.pen_k = wp.zeros(n, dtype=float, device=d)
         self.pen_P = wp.zeros(n, dtype=wp.mat33, device=d)
         self.target = wp.zeros(n, dtype=wp.vec3, device=d)
@@ -467,14 +490,16 @@ class QuasiStaticSolver:
         Every scalar of the recurrence stays on the device (each kernel reads ``alpha`` and ``beta`` from it); the
         host reads the residual every ``CG_CHECK_EVERY`` iterations only."""
         m, cfg, d, nn = self.model, self.config, self.model.device, self.n_nodes
-        sc = self._scalars
+        sc, part = self._scalars, self._partial
         sc.zero_()
-        wp.launch(cg_start, nn, [self.force, self.inv_diag, self.du, self._r, self._z, self._p, sc], device=d)
+        part.zero_()
+        wp.launch(cg_start, nn, [self.force, self.inv_diag, self.du, self._r, self._z, self._p, part], device=d)
         coarse = self._coarse_nodes is not None
         if coarse:
-            sc.zero_()
+            part.zero_()
             self._coarse_correct()
-            wp.launch(cg_dot, nn, [self._r, self._z, self._p, RZ, 1, sc], device=d)
+            wp.launch(cg_dot, nn, [self._r, self._z, self._p, RZ, 1, part], device=d)
+        wp.launch(cg_reduce, 1, [part, sc], device=d)
         rz0 = float(sc.numpy()[RZ])
         if rz0 == 0.0:
             return 0, True
@@ -489,11 +514,14 @@ class QuasiStaticSolver:
                 self._Ap.zero_()
                 wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz,
                                                  self._p, self._Ap], device=d)
-                wp.launch(finish_matvec, nn, [self._Ap, self._p, self.node_mass, k_reg, sc], device=d)
-                wp.launch(cg_advance, nn, [self.inv_diag, self._p, self._Ap, self.du, self._r, self._z, int(not coarse), sc], device=d)
+                wp.launch(finish_matvec, nn, [self._Ap, self._p, self.node_mass, k_reg, part], device=d)
+                wp.launch(cg_reduce, 1, [part, sc], device=d)
+                wp.launch(cg_advance, nn, [self.inv_diag, self._p, self._Ap, self.du, self._r, self._z, int(not coarse), sc, part],
+                          device=d)
                 if coarse:
                     self._coarse_correct()
-                    wp.launch(cg_dot, nn, [self._r, self._z, self._p, RZ_NEXT, 0, sc], device=d)
+                    wp.launch(cg_dot, nn, [self._r, self._z, self._p, RZ_NEXT, 0, part], device=d)
+                wp.launch(cg_reduce, 1, [part, sc], device=d)
                 wp.launch(cg_direction, nn, [self._z, self._p, sc], device=d)
                 wp.launch(cg_next, 1, [sc], device=d)
                 it += 1
@@ -545,7 +573,7 @@ class QuasiStaticSolver:
         k = Z.shape[1]
         AZ = np.empty_like(Z, dtype=np.float64)
         v = wp.zeros(nn, dtype=wp.vec3, device=d)
-        sc = wp.zeros(6, dtype=wp.float64, device=d)
+        part = wp.zeros((6, DOT_SLOTS), dtype=wp.float64, device=d)  # the products' sums are not needed here
         for j in range(k):
             col = np.zeros((nn, 3), dtype=np.float32)
             col[nodes] = Z[:, j]
@@ -553,7 +581,7 @@ class QuasiStaticSolver:
             self._Ap.zero_()
             wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz, v,
                                              self._Ap], device=d)
-            wp.launch(finish_matvec, nn, [self._Ap, v, self.node_mass, k_reg, sc], device=d)
+            wp.launch(finish_matvec, nn, [self._Ap, v, self.node_mass, k_reg, part], device=d)
             AZ[:, j] = self._Ap.numpy()[nodes]
         E = np.einsum("ajc,alc->jl", Z.astype(np.float64), AZ)
         E = 0.5 * (E + E.T)
