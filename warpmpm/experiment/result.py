@@ -49,7 +49,10 @@ class EstimateScores(Scores):
     (the stopping rule that ended it: threshold, stagnation, stalled, max_steps); rms_residual_mm and
     rel_residual of the driven particles at the end; ms_per_step; settled and body_motion_mm (whether
     the whole model had stopped moving: the 99th-percentile particle displacement over the last 100
-    steps); min_det_f (the smallest particle volume ratio: near 0, an element collapsed).
+    steps); min_det_f (the smallest particle volume ratio: near 0, an element collapsed). With the quasi-static
+    solver (``solver.method`` in the run's JSON) steps are Newton iterations, linear_iterations their
+    conjugate-gradient iterations, body_motion_mm the last iteration's largest particle move and reason
+    ``settled`` or ``max_iterations``.
     """
 
     steps: int
@@ -62,6 +65,7 @@ class EstimateScores(Scores):
     settled: bool = False
     body_motion_mm: float = float("nan")
     min_det_f: float = float("nan")
+    linear_iterations: int = 0
 
 
 @dataclass(kw_only=True)
