@@ -33,8 +33,8 @@ stays on the device, in float64. Its preconditioner has two levels: Jacobi (the 
 correction over each organ's six rigid motions (``QuasiStaticConfig.coarse_modes``), whose 6 x organs matrix
 ``Z^T A Z`` is built when a Newton iteration's solve has not converged after ``COARSE_AFTER`` Jacobi iterations (one
 operator application a mode; a frame that starts near its equilibrium never needs it). The coarse level carries
-what Jacobi cannot: stiff organs swinging on the soft pancreas (on the phantom, 30-100 CG iterations a Newton step
-instead of the 300-iteration cap).
+what Jacobi cannot: stiff organs swinging on the soft pancreas (on the phantom after the slice has arrived,
+30-100 CG iterations a Newton step instead of the 300-iteration cap).
 
 A Newton step is cut so that no particle moves more than ``max_move_cells`` or deforms more than
 ``max_strain_step``; the regularisation adapts (Levenberg-Marquardt: a quarter after a full step, four times after
