@@ -481,6 +481,7 @@ class QuasiStaticSolver:
         self._stiffness = (lam + 2 * mu) * model.particles.volume_mm3 * 1e-9 * 4.0 / self._dx**2  # N/m per particle
         self._state = None
         self._organ = wp.array(model.particles.organ_index.astype(np.int32), dtype=int, device=d)
+        self._share = wp.zeros((nn, len(model.particles.organs)), dtype=float, device=d)  # organ shares of node mass
         self._coarse_nodes = None
 
     def _conjugate_gradient(self, state: State, k_reg: float, max_iterations: int) -> tuple[int, bool]:
@@ -548,9 +549,9 @@ class QuasiStaticSolver:
         matrix ``E = Z^T A Z`` (one matrix-vector product per mode), inverted on the host in float64."""
         m, d, nn = self.model, self.model.device, self.n_nodes
         n_org = len(m.particles.organs)
-        share = wp.zeros((nn, n_org), dtype=float, device=d)
-        wp.launch(organ_node_mass, m.n, [state.x, m.mass, self._organ, self._dx, self._ny, self._nz, share], device=d)
-        share = share.numpy().astype(np.float64)
+        self._share.zero_()
+        wp.launch(organ_node_mass, m.n, [state.x, m.mass, self._organ, self._dx, self._ny, self._nz, self._share], device=d)
+        share = self._share.numpy().astype(np.float64)
         total = share.sum(1)
         nodes = np.nonzero(total > 0)[0]
         alpha = share[nodes] / total[nodes, None]
@@ -572,8 +573,8 @@ class QuasiStaticSolver:
         Z = np.stack(modes, axis=1).astype(np.float32)  # (n_active, k, 3)
         k = Z.shape[1]
         AZ = np.empty_like(Z, dtype=np.float64)
-        v = wp.zeros(nn, dtype=wp.vec3, device=d)
-        part = wp.zeros((6, DOT_SLOTS), dtype=wp.float64, device=d)  # the products' sums are not needed here
+        v = self._r  # scratch: the CG that follows starts by overwriting r; the products' sums (partial) are cleared there too
+        part = self._partial
         for j in range(k):
             col = np.zeros((nn, 3), dtype=np.float32)
             col[nodes] = Z[:, j]
