@@ -103,6 +103,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="contact between organs in the estimate: one shared grid velocity (sticky) or a field per organ "
                    "that lets touching organs slide and separate (sliding)")
     p.add_argument("--gt-contact", default=None, choices=["sticky", "sliding"], help="contact in the ground truth (default: --contact)")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads an explicit step is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
     p.add_argument("--friction", type=float, default=0.0, help="Coulomb friction of sliding contact (0: frictionless)")
     p.add_argument("--no-volume-registration", action="store_true", help="skip the (slow) 3D registration baseline")
     p.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
@@ -179,6 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--solver", default="explicit", choices=["explicit", "quasistatic"],
                    help="how each frame's equilibrium is found: explicit MPM steps (default) or Newton / conjugate-gradient "
                    "iterations to the settled equilibrium")
+    k.add_argument("--threads", type=int, default=None, help="CPU threads an explicit step is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
     k.add_argument("--no-predict", action="store_true",
                    help="start each frame from the last estimate, not from the frame's per-organ motion applied to every particle")
     k.add_argument("--rrd", default=None, help="also write a Rerun recording: the cine frames in their 3D planes beside the estimate")
@@ -262,7 +264,7 @@ def config_from_args(a):
                       organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets, drive=a.drive,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
-                      solver=SolverConfig(contact=a.contact, friction=a.friction, method=a.solver))
+                      solver=SolverConfig(contact=a.contact, friction=a.friction, method=a.solver, cpu_threads=a.threads))
 
 
 def cmd_run(a) -> int:
@@ -404,7 +406,7 @@ def cmd_track(a) -> int:
         raise InputError(f"output folder {parent} for --out does not exist")
     cfg = TrackerConfig(organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
                         predict=not a.no_predict, wait_settled=a.wait_settled,
-                        solver=SolverConfig(device=a.device, method=a.solver))
+                        solver=SolverConfig(device=a.device, method=a.solver, cpu_threads=a.threads))
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
           f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes", file=sys.stderr)

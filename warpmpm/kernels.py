@@ -123,11 +123,14 @@ def p2g(
     lam: wp.array(dtype=float),
     dx: float,
     dt: float,
+    part_nx: int,
     grid_m: wp.array(dtype=float, ndim=3),
     grid_mv: wp.array(dtype=wp.vec3, ndim=3),
 ):
     """Stress of the particle's F, then the scatter of mass, APIC momentum with the stress impulse and
-    the external force (one pass: the stress is never stored)."""
+    the external force (one pass: the stress is never stored). ``part_nx``: where along the grid's first
+    axis this launch's copy of the grid starts (:mod:`warpmpm.parallel`: each thread of a split step
+    scatters into a copy of its own, so no two threads add to one node; 0 for a whole launch)."""
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x[p]
@@ -141,7 +144,7 @@ def p2g(
             for c in range(3):
                 w = wx[a] * wy[b] * wz[c]
                 dpos = (wp.vec3(float(a), float(b), float(c)) - fx) * dx
-                ii = base[0] + a
+                ii = part_nx + base[0] + a
                 jj = base[1] + b
                 kk = base[2] + c
                 wp.atomic_add(grid_mv, ii, jj, kk, w * (mom + affine * dpos + impulse))
@@ -170,12 +173,14 @@ def p2g_fields(
     field_nx: int,
     dx: float,
     dt: float,
+    part_nx: int,
     grid_m: wp.array(dtype=float, ndim=3),
     grid_mv: wp.array(dtype=wp.vec3, ndim=3),
     grid_g: wp.array(dtype=wp.vec3, ndim=3),
 ):
     """:func:`p2g` into the particle's own organ field (sliding contact), plus ``grid_g = sum m_p grad w_ip``
-    (minus the field's mass gradient at the node: it points out of the organ), for the contact normals."""
+    (minus the field's mass gradient at the node: it points out of the organ), for the contact normals.
+    ``part_nx``: the start of this launch's copy of the stacked fields (as in :func:`p2g`)."""
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x[p]
@@ -187,7 +192,7 @@ def p2g_fields(
     affine = apic_stress_affine(F[p], C[p], m, vol0[p], mu[p], lam[p], dt, inv_dx)
     mom = m * v[p]
     impulse = dt * f_ext[p]
-    off = field[p] * field_nx
+    off = part_nx + field[p] * field_nx
     for a in range(3):
         for b in range(3):
             for c in range(3):
@@ -227,6 +232,8 @@ def grid_update_fields(
     grid_g: wp.array(dtype=wp.vec3, ndim=3),
     n_fields: int,
     field_nx: int,
+    parts: int,
+    i0: int,
     damping: wp.array(dtype=float),
     wall: int,
     friction: float,
@@ -239,30 +246,49 @@ def grid_update_fields(
     normal ``n_f`` (from the mass gradients, ``n_f ~ g_f - sum_{o != f} g_o``): then the normal part of
     ``v_f - v_cm`` is removed (no interpenetration) and the tangential part kept (frictionless sliding) or
     reduced by at most ``friction`` times the normal correction (Coulomb). Moving apart is free (separation).
-    For two organs at a node the corrections cancel in sum: momentum is conserved."""
-    i, j, k = wp.tid()
+    For two organs at a node the corrections cancel in sum: momentum is conserved.
+
+    The scattered sums come in ``parts`` copies of the stacked fields (one per thread of a split P2G,
+    :mod:`warpmpm.parallel`), each ``n_fields * field_nx`` nodes long along the first axis: they are added
+    here and cleared. The launch covers nodes ``i0 + tid`` along x (a split update)."""
+    t, j, k = wp.tid()
+    i = t + i0
+    stride = n_fields * field_nx
     msum = float(0.0)
     mvsum = wp.vec3(0.0)
     gsum = wp.vec3(0.0)
     present = int(0)
     for f in range(n_fields):
-        mf = grid_m[f * field_nx + i, j, k]
+        ii = f * field_nx + i
+        mf = float(0.0)
+        for q in range(parts):
+            mf += grid_m[q * stride + ii, j, k]
         if mf > 0.0:
             msum += mf
-            mvsum += grid_mv[f * field_nx + i, j, k]
-            gsum += grid_g[f * field_nx + i, j, k]
+            mvf = wp.vec3(0.0)
+            gf = wp.vec3(0.0)
+            for q in range(parts):
+                mvf += grid_mv[q * stride + ii, j, k]
+                gf += grid_g[q * stride + ii, j, k]
+            mvsum += mvf
+            gsum += gf
             present += 1
     n = wp.vec3i(field_nx, grid_m.shape[1], grid_m.shape[2])
     if present > 0:
         v_cm = mvsum / msum
         for f in range(n_fields):
             ii = f * field_nx + i
-            mf = grid_m[ii, j, k]
+            mf = float(0.0)
+            mvf = wp.vec3(0.0)
+            gf = wp.vec3(0.0)
+            for q in range(parts):
+                mf += grid_m[q * stride + ii, j, k]
+                mvf += grid_mv[q * stride + ii, j, k]
+                gf += grid_g[q * stride + ii, j, k]
             vel = wp.vec3(0.0)
             if mf > 0.0:
-                vel = grid_mv[ii, j, k] / mf
+                vel = mvf / mf
                 if present > 1:
-                    gf = grid_g[ii, j, k]
                     nrm = 2.0 * gf - gsum
                     ln = wp.length(nrm)
                     if ln > 0.0:
@@ -276,9 +302,10 @@ def grid_update_fields(
                                 tang = tang * wp.max(0.0, 1.0 - friction * vn / lt)
                             vel = v_cm + tang
                 vel = slip_walls(vel * damping[0], i, j, k, n, wall)
-                grid_m[ii, j, k] = 0.0
-                grid_mv[ii, j, k] = wp.vec3(0.0)
-                grid_g[ii, j, k] = wp.vec3(0.0)
+                for q in range(parts):
+                    grid_m[q * stride + ii, j, k] = 0.0
+                    grid_mv[q * stride + ii, j, k] = wp.vec3(0.0)
+                    grid_g[q * stride + ii, j, k] = wp.vec3(0.0)
             grid_v[ii, j, k] = vel
     else:
         for f in range(n_fields):
@@ -289,22 +316,32 @@ def grid_update_fields(
 def grid_update(
     grid_m: wp.array(dtype=float, ndim=3),
     grid_mv: wp.array(dtype=wp.vec3, ndim=3),
+    parts: int,
+    i0: int,
     damping: wp.array(dtype=float),
     wall: int,
     grid_v: wp.array(dtype=wp.vec3, ndim=3),
 ):
     """Momentum -> velocity, velocity damping ``v <- v * damping[0]``, slip walls ``wall`` cells thick.
 
-    Clears the node's mass and momentum once read, so the next step's ``p2g`` scatters into a clean grid
-    without a separate clearing pass over every node (the grid starts zeroed)."""
-    i, j, k = wp.tid()
-    m = grid_m[i, j, k]
+    The scattered mass and momentum come in ``parts`` copies of the grid stacked along x (one per thread of
+    a split P2G, :mod:`warpmpm.parallel`; 1 for a whole one): they are added here. Clears what it has read,
+    so the next step's ``p2g`` scatters into a clean grid without a separate clearing pass over every node
+    (the grid starts zeroed). The launch covers nodes ``i0 + tid`` along x (a split update)."""
+    t, j, k = wp.tid()
+    i = t + i0
+    nx = grid_v.shape[0]
+    m = float(0.0)
+    for q in range(parts):
+        m += grid_m[q * nx + i, j, k]
     vel = wp.vec3(0.0)
     if m > 0.0:
-        vel = grid_mv[i, j, k] / m * damping[0]
-        grid_m[i, j, k] = 0.0
-        grid_mv[i, j, k] = wp.vec3(0.0)
-        vel = slip_walls(vel, i, j, k, wp.vec3i(grid_m.shape[0], grid_m.shape[1], grid_m.shape[2]), wall)
+        mv = wp.vec3(0.0)
+        for q in range(parts):
+            mv += grid_mv[q * nx + i, j, k]
+            grid_m[q * nx + i, j, k] = 0.0
+            grid_mv[q * nx + i, j, k] = wp.vec3(0.0)
+        vel = slip_walls(mv / m * damping[0], i, j, k, wp.vec3i(nx, grid_v.shape[1], grid_v.shape[2]), wall)
     grid_v[i, j, k] = vel
 
 
@@ -326,6 +363,7 @@ def g2p(
     x_min: float,
     x_max: wp.vec3,
     step: int,
+    index0: int,
     x_out: wp.array(dtype=wp.vec3),
     carry_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
@@ -333,7 +371,8 @@ def g2p(
     F_out: wp.array(dtype=wp.mat33),
     status: wp.array(dtype=int),
 ):
-    """Gather velocity and C, advect, update F. ``status`` = [code, first bad particle, first bad step].
+    """Gather velocity and C, advect, update F. ``status`` = [code, first bad particle, first bad step];
+    ``index0`` is the global index of the launch's first particle (a launch over part of the particles).
 
     With ``field_nx`` > 0 (sliding contact) each organ has its own grid velocity field, stacked along the
     first axis: the particle reads field ``field[p]``, nodes ``field[p] * field_nx + i``."""
@@ -377,7 +416,7 @@ def g2p(
         carry = wp.vec3(0.0)
     if code != 0:
         wp.atomic_max(status, 0, code)
-        wp.atomic_min(status, 1, p)
+        wp.atomic_min(status, 1, index0 + p)
         wp.atomic_min(status, 2, step)
     x_out[p] = clamped
     carry_out[p] = carry

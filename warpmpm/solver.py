@@ -31,7 +31,7 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from . import kernels
+from . import kernels, parallel
 from .errors import InputError, SimulationError
 from .model import ParticleModel
 
@@ -156,6 +156,13 @@ class SolverConfig:
             (:mod:`warpmpm.quasistatic`): the settled equilibrium directly, in a fraction of the time the explicit
             solver needs to wait for it (benchmarks/README.md); sticky contact only.
         quasistatic: settings of the ``"quasistatic"`` method.
+        cpu_threads: on the CPU, threads an explicit step splits its particle and grid kernels over
+            (:mod:`warpmpm.parallel`: Warp runs each CPU launch on one core, and launches over disjoint
+            particle ranges from several threads run at once; each thread scatters into a grid copy of its
+            own). None (default): the environment variable ``WARPMPM_CPU_THREADS`` when set, else every core
+            this process may use, at most 2, the most measured (benchmarks/README.md: a step 1.8x faster on
+            two threads of the 2-core machine); 1: one launch per kernel, the single-core path. Ignored on CUDA and inside a graph capture. The answers agree with one thread
+            to float32 rounding (the grid's sums are added in another order), not bit for bit.
     """
 
     particles_per_cell: float = 4.0
@@ -179,6 +186,7 @@ class SolverConfig:
     bonded: tuple[tuple[str, ...], ...] = (("pancreas", "duodenum"),)
     method: Literal["explicit", "quasistatic"] = "explicit"
     quasistatic: QuasiStaticConfig = QuasiStaticConfig()
+    cpu_threads: int | None = None
 
     def __post_init__(self):
         def finite(name, lo=0.0, strict=True, optional=False):
@@ -228,14 +236,20 @@ class SolverConfig:
             raise InputError(f"SolverConfig.wall_cells must be an integer >= 1, got {self.wall_cells!r}")
         if self.check_every is not None and (not isinstance(self.check_every, int) or self.check_every < 1):
             raise InputError(f"SolverConfig.check_every must be an integer >= 1, got {self.check_every!r}")
+        if self.cpu_threads is not None and (not isinstance(self.cpu_threads, int) or isinstance(self.cpu_threads, bool)
+                                             or not 1 <= self.cpu_threads <= 64):
+            raise InputError(f"SolverConfig.cpu_threads must be an integer from 1 to 64 (or None: the machine's cores, at most 2), "
+                             f"got {self.cpu_threads!r}")
 
 
 #: Slots the adaptive damping's sums are spread over (by particle index): fewer atomics on one address on a GPU.
 RAYLEIGH_SLOTS = 64
 
-#: Bytes per particle of a step (two states of x, v, C, F; mass, volume, Lame; force) and per grid node.
+#: Bytes per particle of a step (two states of x, v, C, F; mass, volume, Lame; force) and per grid node (mass and
+#: momentum, 16, in each thread's copy; velocity, 12).
 BYTES_PER_PARTICLE = 220
 BYTES_PER_NODE = 28
+BYTES_PER_NODE_COPY = 16
 
 
 def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm: np.ndarray | None = None):
@@ -272,9 +286,19 @@ def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm:
     return dx, origin, shape
 
 
-def memory_estimate_bytes(n_particles: int, grid_shape) -> int:
-    """Memory of one simulation (particles and grid), from :data:`BYTES_PER_PARTICLE` and :data:`BYTES_PER_NODE`."""
-    return int(n_particles * BYTES_PER_PARTICLE + int(np.prod(grid_shape)) * BYTES_PER_NODE)
+def memory_estimate_bytes(n_particles: int, grid_shape, grid_copies: int = 1) -> int:
+    """Memory of one simulation (particles and grid), from :data:`BYTES_PER_PARTICLE` and :data:`BYTES_PER_NODE`;
+    ``grid_copies``: the threads of a split CPU step, each scattering into a copy of the grid's mass and momentum."""
+    nodes = int(np.prod(grid_shape))
+    return int(n_particles * BYTES_PER_PARTICLE + nodes * (BYTES_PER_NODE + (max(1, grid_copies) - 1) * BYTES_PER_NODE_COPY))
+
+
+def cpu_threads(config: SolverConfig, device) -> int:
+    """Threads an explicit step of ``config`` runs on ``device``: 1 on CUDA, else ``config.cpu_threads`` or
+    :func:`warpmpm.parallel.default_threads` (:attr:`SolverConfig.cpu_threads`)."""
+    if str(device).startswith("cuda"):
+        return 1
+    return config.cpu_threads if config.cpu_threads is not None else parallel.default_threads()
 
 
 def default_device() -> str:
@@ -424,12 +448,23 @@ class MPMSolver:
         shape = model.grid_shape
         self.fields = model.n_fields > 1
         stacked = (shape[0] * model.n_fields, shape[1], shape[2])  # the organ fields stacked along x
-        self.grid_m = wp.zeros(stacked, dtype=float, device=d)
-        self.grid_mv = wp.zeros(stacked, dtype=wp.vec3, device=d)
+        #: threads of a split CPU step (:mod:`warpmpm.parallel`); each scatters into its own copy of the grid's
+        #: mass and momentum (the copies stacked along x after the organ fields), which the grid update adds
+        self.threads = cpu_threads(model.config, d)
+        self._ranges = parallel.split(model.n, self.threads)
+        self.threads = len(self._ranges)
+        self._node_ranges = parallel.split(shape[0], self.threads)
+        self._views = parallel.ChunkViews(self._ranges)
+        copies = (stacked[0] * self.threads, stacked[1], stacked[2])
+        self.grid_m = wp.zeros(copies, dtype=float, device=d)
+        self.grid_mv = wp.zeros(copies, dtype=wp.vec3, device=d)
         self.grid_v = wp.zeros(stacked, dtype=wp.vec3, device=d)
-        self.grid_g = wp.zeros(stacked, dtype=wp.vec3, device=d) if self.fields else None
+        self.grid_g = wp.zeros(copies, dtype=wp.vec3, device=d) if self.fields else None
         self.zero_force = wp.zeros(model.n, dtype=wp.vec3, device=d)
-        self.status = wp.array(np.array([0, 2**31 - 1, 2**31 - 1], dtype=np.int32), dtype=int, device=d)
+        # one status flag per thread (a CPU "atomic" is a plain read-modify-write: two threads must not share one)
+        self._status_parts = [wp.array(np.array([0, 2**31 - 1, 2**31 - 1], dtype=np.int32), dtype=int, device=d)
+                              for _ in range(self.threads)]
+        self.status = self._status_parts[0]
         # velocity damping factor per step, on the device so the adaptive rule can change it inside a captured graph
         self.damping = wp.array([math.exp(-model.damping_per_s * model.dt_s)], dtype=float, device=d)
         self._damping_dt = model.dt_s  # the step length the fixed factor was computed for
@@ -485,20 +520,24 @@ class MPMSolver:
             self._damping_dt = dt
         damping = self.damping
         cfg = m.config
-        if self.fields:
-            nx = m.grid_shape[0]
-            wp.launch(kernels.p2g_fields, m.n, [state_in.x, state_in.v, state_in.C, state_in.F, force, m.mass, m.vol0, m.mu, m.lam,
-                                                m.field, nx, self._dx, dt, self.grid_m, self.grid_mv, self.grid_g], device=d)
-            wp.launch(kernels.grid_update_fields, m.grid_shape, [self.grid_m, self.grid_mv, self.grid_g, m.n_fields, nx, damping,
-                                                                 cfg.wall_cells, cfg.friction, self.grid_v], device=d)
+        nx = m.grid_shape[0]
+        parts = 1 if self.threads == 1 or wp.get_device(d).is_capturing else self.threads
+        if parts == 1:
+            self._p2g_part(0, state_in.x, state_in.v, state_in.C, state_in.F, force, [m.mass, m.vol0, m.mu, m.lam, m.field], dt)
+            self._grid_update(0, nx, damping, 1)
+            self._g2p_part(0, state_in.x, state_in.x_carry, state_in.F, m.field,
+                           [state_out.x, state_out.x_carry, state_out.v, state_out.C, state_out.F], dt)
         else:
-            nx = 0
-            wp.launch(kernels.p2g, m.n, [state_in.x, state_in.v, state_in.C, state_in.F, force, m.mass, m.vol0, m.mu, m.lam, self._dx, dt,
-                                         self.grid_m, self.grid_mv], device=d)
-            wp.launch(kernels.grid_update, m.grid_shape, [self.grid_m, self.grid_mv, damping, cfg.wall_cells, self.grid_v], device=d)
-        wp.launch(kernels.g2p, m.n, [self.grid_v, m.field, nx, state_in.x, state_in.x_carry, state_in.F, self._dx, dt, self._x_min,
-                                     self._x_max, self.step_count, state_out.x, state_out.x_carry, state_out.v, state_out.C,
-                                     state_out.F, self.status], device=d)
+            n = len(self._ranges)
+            x_in, v_in, C_in, F_in, f_in = (self._views(a) for a in (state_in.x, state_in.v, state_in.C, state_in.F, force))
+            carry_in = self._views(state_in.x_carry)
+            outs = [self._views(a) for a in (state_out.x, state_out.x_carry, state_out.v, state_out.C, state_out.F)]
+            pv = [self._views(a) for a in (m.mass, m.vol0, m.mu, m.lam, m.field)]
+            parallel.run_together(
+                lambda k=k: self._p2g_part(k, x_in[k], v_in[k], C_in[k], F_in[k], f_in[k], [a[k] for a in pv], dt) for k in range(n))
+            parallel.run_together(lambda k=k: self._grid_update(*self._node_ranges[k], damping, n) for k in range(n))
+            parallel.run_together(
+                lambda k=k: self._g2p_part(k, x_in[k], carry_in[k], F_in[k], pv[4][k], [a[k] for a in outs], dt) for k in range(n))
         if self.adaptive:
             lo, hi = cfg.damping_bounds
             wp.launch(kernels.stiffness_rayleigh, m.n, [state_in.v, state_out.v, self._accel_prev, m.mass, self.rayleigh_weight,
@@ -509,11 +548,47 @@ class MPMSolver:
         if check and self.check_every and self.step_count % self.check_every == 0:
             self.check()
 
+    def _p2g_part(self, k, x, v, C, F, force, per_particle, dt):
+        """P2G of thread ``k``'s particles (the arrays cut to its range; whole for one thread) into grid copy ``k``."""
+        m = self.model
+        mass, vol0, mu, lam, field = per_particle
+        nx = m.grid_shape[0]
+        if self.fields:
+            wp.launch(kernels.p2g_fields, x.shape[0], [x, v, C, F, force, mass, vol0, mu, lam, field, nx, self._dx, dt,
+                                                       k * nx * m.n_fields, self.grid_m, self.grid_mv, self.grid_g], device=m.device)
+        else:
+            wp.launch(kernels.p2g, x.shape[0], [x, v, C, F, force, mass, vol0, mu, lam, self._dx, dt, k * nx,
+                                                self.grid_m, self.grid_mv], device=m.device)
+
+    def _grid_update(self, lo, hi, damping, parts):
+        """Grid update of the node slab ``lo <= i < hi`` along x, adding ``parts`` copies of the scattered sums."""
+        m = self.model
+        cfg = m.config
+        dim = (hi - lo, m.grid_shape[1], m.grid_shape[2])
+        if self.fields:
+            wp.launch(kernels.grid_update_fields, dim, [self.grid_m, self.grid_mv, self.grid_g, m.n_fields, m.grid_shape[0], parts, lo,
+                                                        damping, cfg.wall_cells, cfg.friction, self.grid_v], device=m.device)
+        else:
+            wp.launch(kernels.grid_update, dim, [self.grid_m, self.grid_mv, parts, lo, damping, cfg.wall_cells, self.grid_v],
+                      device=m.device)
+
+    def _g2p_part(self, k, x, carry, F, field, outs, dt):
+        """G2P of thread ``k``'s particles (arrays cut to its range), flagging into its own status array."""
+        m = self.model
+        nx = m.grid_shape[0] if self.fields else 0
+        x_out, carry_out, v_out, C_out, F_out = outs
+        wp.launch(kernels.g2p, x.shape[0], [self.grid_v, field, nx, x, carry, F, self._dx, dt, self._x_min, self._x_max,
+                                            self.step_count, self._ranges[k][0], x_out, carry_out, v_out, C_out, F_out,
+                                            self._status_parts[k]], device=m.device)
+
     def check(self) -> None:
         """Raise :class:`SimulationError` when a kernel flagged a non-finite value or a particle leaving the grid."""
-        code, particle, step = (int(v) for v in self.status.numpy())
+        flags = np.stack([a.numpy() for a in self._status_parts]) if len(self._status_parts) > 1 else self.status.numpy()[None]
+        code = int(flags[:, 0].max())
         if code == kernels.STATUS_OK:
             return
+        bad = flags[flags[:, 0] > 0]
+        particle, step = int(bad[:, 1].min()), int(bad[:, 2].min())
         organ = self.model.particles.organs[int(self.model.particles.organ_index[particle])]
         if code == kernels.STATUS_NONFINITE:
             raise SimulationError(
@@ -526,4 +601,5 @@ class MPMSolver:
         )
 
     def reset_status(self) -> None:
-        self.status.assign(np.array([0, 2**31 - 1, 2**31 - 1], dtype=np.int32))
+        for a in self._status_parts:
+            a.assign(np.array([0, 2**31 - 1, 2**31 - 1], dtype=np.int32))

@@ -53,7 +53,25 @@ def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: 
     if scheduler is None and workers <= 1:
         for a in args:
             take(a, lambda: fn(*a))
-    elif scheduler is None:
+        return failed
+    # worker processes split their steps over the cores left to each (processes x threads <= cores): a process is
+    # spawned with this environment, so the variable reaches Warp's step in every worker
+    from ..parallel import THREADS_VARIABLE, cpu_cores
+
+    old = os.environ.get(THREADS_VARIABLE)
+    if old is None:
+        os.environ[THREADS_VARIABLE] = str(max(1, cpu_cores() // max(1, workers)))
+    try:
+        _run_elsewhere(fn, args, take, workers, scheduler)
+    finally:
+        if old is None:
+            os.environ.pop(THREADS_VARIABLE, None)
+    return failed
+
+
+def _run_elsewhere(fn, args, take, workers, scheduler) -> None:
+    """:func:`run_tasks` in a local process pool (``scheduler`` None) or on Dask."""
+    if scheduler is None:
         import concurrent.futures as cf
         import multiprocessing as mp
 
@@ -82,7 +100,6 @@ def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: 
             client.close()
             if cluster is not None:
                 cluster.close()
-    return failed
 
 
 def report_failures(failed: list[tuple], n_tasks: int) -> None:
