@@ -96,11 +96,14 @@ def pareto(rows):
 def stream(a, device):
     """``--stream N``: one row per solver of ``--solver`` (same run), latency and error per frame; raw ``results/stream.json``."""
     rows = {}
+    threads = [None] if a.threads is None else [int(t) for t in a.threads.split(",")]
     for method in a.solver.split(","):
-        print(f"solver {method}:")
-        rows[method] = stream_one(a, device, method)
+        for th in threads:
+            name = method if th is None else f"{method}, {th} thread{'s' if th > 1 else ''}"
+            print(f"solver {name}:")
+            rows[name] = stream_one(a, device, method, th)
     raw.save("stream", rows | {"solvers": list(rows)})
-    base = rows[a.solver.split(",")[0]]
+    base = rows[next(iter(rows))]
     print("\n| solver | median latency ms | p95 ms | first frame ms | median steps (Newton iterations) | mean error mm | latency / first solver's |")
     print("|---|---|---|---|---|---|---|")
     for method, r in rows.items():
@@ -109,7 +112,7 @@ def stream(a, device):
               f"{np.mean(r['error_mm']):.2f} | {np.median(lat) / np.median(base['latency_s']):.2f} |")
 
 
-def stream_one(a, device, method):
+def stream_one(a, device, method, threads=None):
     prep = prepare_case(CaseConfig(labels=a.labels, image=a.image, preset=a.preset, phantom_resolution=a.phantom_resolution,
                                    particle_step=int(a.steps.split(",")[0]), device=device))
     model = prep.full_model
@@ -128,7 +131,8 @@ def stream_one(a, device, method):
         t0 = time.perf_counter()
         if est is None:
             idx, _ = affine_targets(model, model.positions_mm, sl, [InPlaneAffine(A)], prep.centre_mm)
-            est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(device=device, method=method), extra_points_mm=truth)
+            est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(device=device, method=method, cpu_threads=threads),
+                                       extra_points_mm=truth)
         res = est.estimate(truth[idx])
         lat.append(time.perf_counter() - t0)
         steps.append(res.steps)
@@ -156,6 +160,8 @@ def main(argv=None):
     p.add_argument("--device", default=None)
     p.add_argument("--stream", type=int, default=0)
     p.add_argument("--solver", default="explicit", help="--stream: solvers to compare, comma-separated (explicit, quasistatic)")
+    p.add_argument("--threads", default=None, help="--stream: CPU threads of a step to compare, comma-separated (e.g. 1,2; "
+                   "default: the solver's default)")
     p.add_argument("--out", default="benchmarks/error_vs_time.png")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines

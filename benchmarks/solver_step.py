@@ -9,7 +9,10 @@ taichi``). Run::
     python benchmarks/solver_step.py                 # 10k, 100k, 300k, 1M on this machine's default device
     python benchmarks/solver_step.py --sizes 10000 --device cpu --steps 20
 
-Prints a table (ms per step, M particle-steps/s, Taichi/warpmpm ratio, bytes per particle).
+Prints a table (ms per step, M particle-steps/s, Taichi/warpmpm ratio, bytes per particle). On the CPU warpmpm
+is timed twice in the same run, on one thread and split over ``--threads`` (default 2: warpmpm.parallel); the
+ratio to Taichi (which uses every core) is for the split step, and the split step's gain over one thread is
+its own column.
 """
 
 from __future__ import annotations
@@ -47,8 +50,8 @@ def bytes_per_particle(m: MPMModel, s: MPMSolver, states) -> float:
     return total / m.n, grid
 
 
-def time_warp(pm, device: str, steps: int):
-    m = MPMModel(pm, SolverConfig(device=device, check_every=10**9))  # no NaN read-back inside the timed steps
+def time_warp(pm, device: str, steps: int, threads: int | None = None):
+    m = MPMModel(pm, SolverConfig(device=device, check_every=10**9, cpu_threads=threads))  # no NaN read-back in the timed steps
     s = MPMSolver(m)
     a, b = m.state(), m.state()
     F0 = np.diag([0.95, 1.0, 1.0]).astype(np.float32)
@@ -153,6 +156,7 @@ def main(argv=None):
     p.add_argument("--device", default=None, help="cpu or cuda (default: CUDA when available)")
     p.add_argument("--steps", type=int, default=0, help="timed steps (default: enough for ~3 s, at least 5)")
     p.add_argument("--no-taichi", action="store_true")
+    p.add_argument("--threads", type=int, default=2, help="threads of warpmpm's split CPU step (timed beside one thread)")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines
     wp.init()
@@ -163,7 +167,10 @@ def main(argv=None):
     for n in [int(s) for s in a.sizes.split(",")]:
         pm = scene(n)
         steps = a.steps or (200 if device.startswith("cuda") else max(5, int(3e6 / pm.n)))
-        t_w, m, bpp, grid = time_warp(pm, device, steps)
+        t_1 = float("nan")
+        if not device.startswith("cuda"):
+            t_1, *_ = time_warp(pm, device, steps, 1)
+        t_w, m, bpp, grid = time_warp(pm, device, steps, a.threads)
         t_t = float("nan")
         if not a.no_taichi:
             try:
@@ -171,15 +178,19 @@ def main(argv=None):
             except Exception as exc:  # benchmark-only dependency
                 print(f"taichi unavailable: {exc}")
                 a.no_taichi = True
-        rows.append((pm.n, m.grid_shape, t_w, t_t, bpp, grid))
-        print(f"  {pm.n} particles: warpmpm {t_w * 1e3:.3f} ms/step, taichi {t_t * 1e3:.3f} ms/step", flush=True)
+        rows.append((pm.n, m.grid_shape, t_1, t_w, t_t, bpp, grid))
+        print(f"  {pm.n} particles: warpmpm {t_1 * 1e3:.3f} ms/step on one thread, {t_w * 1e3:.3f} split over {a.threads}, "
+              f"taichi {t_t * 1e3:.3f} ms/step", flush=True)
     print()
-    print("| particles | grid | warpmpm ms/step | M particle-steps/s | taichi ms/step | taichi / warpmpm | bytes/particle | grid MB |")
-    print("|---|---|---|---|---|---|---|---|")
-    for n, g, tw, tt, bpp, grid in rows:
-        print(f"| {n} | {g[0]}x{g[1]}x{g[2]} | {tw * 1e3:.3f} | {n / tw / 1e6:.2f} | {tt * 1e3:.3f} | {tt / tw:.2f} | {bpp:.0f} | {grid / 1e6:.1f} |")
-    raw.save("solver_step", [{"particles": n, "grid": list(g), "warpmpm_s_per_step": tw, "taichi_s_per_step": tt,
-                              "bytes_per_particle": bpp, "grid_bytes": grid} for n, g, tw, tt, bpp, grid in rows])
+    print(f"| particles | grid | warpmpm 1 thread ms/step | warpmpm {a.threads} threads ms/step | {a.threads} threads / 1 (speed) | "
+          "M particle-steps/s | taichi ms/step | taichi / warpmpm | bytes/particle | grid MB |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for n, g, t1, tw, tt, bpp, grid in rows:
+        print(f"| {n} | {g[0]}x{g[1]}x{g[2]} | {t1 * 1e3:.3f} | {tw * 1e3:.3f} | {t1 / tw:.2f} | {n / tw / 1e6:.2f} | {tt * 1e3:.3f} | "
+              f"{tt / tw:.2f} | {bpp:.0f} | {grid / 1e6:.1f} |")
+    raw.save("solver_step", [{"particles": n, "grid": list(g), "threads": a.threads, "warpmpm_1_thread_s_per_step": t1,
+                              "warpmpm_s_per_step": tw, "taichi_s_per_step": tt, "bytes_per_particle": bpp, "grid_bytes": grid}
+                             for n, g, t1, tw, tt, bpp, grid in rows])
 
 
 if __name__ == "__main__":
