@@ -1,7 +1,7 @@
 """The MPM equilibrium against an independent finite-element solve (issue 17): one axial slice of a block
 scaled 1.05, rotated 3 degrees or sheared 3 degrees in plane, everything else free.
 
-    python benchmarks/fem_reference.py [--size 20,20,21] [--ppc-sweep | --grid-shift | --quasistatic]
+    python benchmarks/fem_reference.py [--size 20,20,21] [--ppc-sweep | --grid-shift | --quasistatic | --fem-convergence]
 
 Scenes: a soft (pancreas) block, a bonded pancreas + left kidney block and a pancreas + duodenum block
 (~3000x stiffer), 2 mm particles. The FEM
@@ -11,7 +11,9 @@ difference of the non-driven particles' displacement, at the default stopping ru
 body has settled (``wait_settled``: the settled mode, adaptive damping and a PD drive; and each of its two
 changes alone against the fixed damping and PID drive it replaced), and run on to a fixed 6,000 steps (does
 the answer drift?). ``--grid-shift``: the soft block moved by 0, 1/4 and 1/2 cell against the grid. ``--quasistatic``: the settled mode's explicit solver beside the quasi-static one (:mod:`warpmpm.quasistatic`), same
-run, with the time ratio. ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
+run, with the time ratio. ``--fem-convergence``: how far the reference is from its own continuum limit: the FEM on
+the particles' mesh against the FEM on a mesh twice as fine (each hexahedron cut in eight), and the settled MPM
+against both (a difference below the reference's own cannot be resolved by it). ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
 and 8 particles per cell, with the error by distance from the slice (in-plane and through-plane parts).
 """
 
@@ -100,6 +102,8 @@ def main(argv=None):
     p.add_argument("--ppc-sweep", action="store_true", help="only the particles-per-cell sweep of the scaled soft block")
     p.add_argument("--grid-shift", action="store_true", help="only the soft block moved by 0, 1/4 and 1/2 cell against the grid")
     p.add_argument("--quasistatic", action="store_true", help="only the settled mode's explicit solver against the quasi-static one")
+    p.add_argument("--fem-convergence", action="store_true",
+                   help="the FEM on the particles' mesh against a twice finer one, and the settled MPM against both")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR
     warnings.simplefilter("ignore")
@@ -108,6 +112,8 @@ def main(argv=None):
         return ppc_sweep(size)
     if a.grid_shift:
         return grid_shift(size)
+    if a.fem_convergence:
+        return fem_convergence(size)
     rules = SOLVERS if a.quasistatic else RULES
     rows = []
     print("| scene | load | " + " | ".join(r[0] for r in rules) + (" | time, quasi-static / explicit |" if a.quasistatic else " |"))
@@ -122,6 +128,42 @@ def main(argv=None):
             ratio = f" | {res[1]['wall_s'] / res[0]['wall_s']:.2f}" if a.quasistatic else ""
             print(f"| {sname} | {lname} | {cells}{ratio} |", flush=True)
     raw.save("fem_quasistatic" if a.quasistatic else "fem_reference", rows)
+
+
+def fem_convergence(size):
+    """Each scene and load: the FEM on the particles' mesh (h) and on a mesh twice as fine (h/2), and the settled MPM
+    (the default settled mode) against both; relative L2 over the non-driven particles, and by material half."""
+    rows = []
+    print("| scene | load | FEM h against FEM h/2 | settled MPM against FEM h | settled MPM against FEM h/2 | FEM h/2 solve s |")
+    print("|---|---|---|---|---|---|")
+    settled = ("settled", SolverConfig(device="cpu"), SETTLED, None)
+    for sname, model in scenes(size).items():
+        for lname, load in LOADS.items():
+            k = int(model.voxel_ijk[:, 2].max()) // 2
+            sl = [DrivingSlice("axial", k)]
+            idx, tg = affine_targets(model, model.positions_mm, sl, [load], model.positions_mm.mean(0))
+            free = np.ones(model.n, bool)
+            free[idx] = False
+            u_h = fem_displacement_mm(model, idx, tg)
+            t0 = time.perf_counter()
+            u_h2 = fem_displacement_mm(model, idx, tg, refine=2)
+            wall = time.perf_counter() - t0
+            est = SliceDrivenEstimator(model, sl, solver_config=settled[1], extra_points_mm=tg, convergence=SETTLED)
+            u_mpm = est.estimate(tg).positions_mm - model.positions_mm
+
+            def rel(a, b, sel=free):
+                return float(np.linalg.norm(a[sel] - b[sel]) / np.linalg.norm(b[sel]))
+
+            second = model.organ_index > 0  # the second material's half (the kidney or duodenum), where there is one
+            row = {"scene": sname, "load": lname, "fem_h_vs_h2": rel(u_h, u_h2), "mpm_vs_fem_h": rel(u_mpm, u_h),
+                   "mpm_vs_fem_h2": rel(u_mpm, u_h2), "fem_h2_wall_s": wall}
+            if second.any():
+                row.update({"second_half": {"fem_h_vs_h2": rel(u_h, u_h2, free & second), "mpm_vs_fem_h": rel(u_mpm, u_h, free & second),
+                                            "mpm_vs_fem_h2": rel(u_mpm, u_h2, free & second)}})
+            rows.append(row)
+            print(f"| {sname} | {lname} | {100 * row['fem_h_vs_h2']:.1f} % | {100 * row['mpm_vs_fem_h']:.1f} % | "
+                  f"{100 * row['mpm_vs_fem_h2']:.1f} % | {wall:.0f} |", flush=True)
+    raw.save("fem_convergence", rows)
 
 
 def ppc_sweep(size):

@@ -118,6 +118,7 @@ def cases(d):
         ("cfl 3 (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; SolverConfig(cfl=3)"], "error"),
         ("cfl 0 (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; SolverConfig(cfl=0)"], "error"),
         ("quasi-static with sliding contact", run + ["--solver", "quasistatic", "--contact", "sliding"], "error"),
+        ("threads 0", run + ["--threads", "0"], "error"),
         ("quasi-static: CG tolerance 2 (API)", ["python", "-c", "from warpmpm.solver import QuasiStaticConfig; "
                                                 "QuasiStaticConfig(cg_tolerance=2.0)"], "error"),
         ("NaN extra points (API)", ["python", "-c", "import numpy as np; from warpmpm.scenes import block_model; "

@@ -21,6 +21,26 @@ def test_fem_moves_a_free_block_rigidly_with_a_translated_slice():
     np.testing.assert_allclose(u, np.tile([1.0, -2.0, 0.5], (m.n, 1)), atol=1e-8)
 
 
+@pytest.mark.parametrize("refine", [1, 2])
+def test_fem_turns_a_free_block_rigidly_with_an_infinitesimally_rotated_slice(refine):
+    """u = theta (-y, x, 0) on one slice is a zero-energy motion of linear elasticity, so the whole block takes it
+    exactly, on the particles' mesh and on a finer one (whose nodes between the driven particles must take the
+    interpolated motion: left free, or driven to zero, they would bend the slice)."""
+    m = block_model((6, 5, 7), (2.0, 2.0, 2.0), "pancreas")
+    c = m.positions_mm.mean(0)
+    theta = 0.01
+    idx = np.nonzero(m.voxel_ijk[:, 2] == 3)[0]
+    rot = lambda p: theta * np.stack([-(p[:, 1] - c[1]), p[:, 0] - c[0], np.zeros(len(p))], axis=1)  # noqa: E731
+    u = fem_displacement_mm(m, idx, m.positions_mm[idx] + rot(m.positions_mm[idx]), refine=refine)
+    np.testing.assert_allclose(u, rot(m.positions_mm), atol=1e-7)
+
+
+def test_fem_refuses_a_bad_refinement():
+    m = block_model((3, 3, 3), (2.0, 2.0, 2.0), "pancreas")
+    with pytest.raises(InputError, match="refinement"):
+        fem_displacement_mm(m, np.arange(9), m.positions_mm[:9], refine=0)
+
+
 def test_fem_far_layers_follow_and_the_answer_is_mirror_symmetric():
     """Scaling the middle slice of a nearly incompressible block (nu = 0.49): the far layers still move in plane,
     and the answer is symmetric about the slice (in-plane equal, through-plane opposite)."""

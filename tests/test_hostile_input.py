@@ -215,11 +215,20 @@ def test_a_non_finite_residual_is_a_simulation_error():
     (["--rrd-every", "0"], "--rrd-every must be an integer >= 1"),
     (["--slices", "auto:zz"], "unknown --slices"),
     (["--solver", "quasistatic", "--contact", "sliding"], "handles sticky contact only"),
+    (["--threads", "0"], "cpu_threads must be an integer from 1 to 64"),
 ])
 def test_bad_values_are_one_line_errors(tmp_path, capsys, args, msg):
     code = run_main(TINY + ["--json", str(tmp_path / "o.json")] + args)
     err = capsys.readouterr().err
     assert code == 2 and msg in err and err.count("\n") == 1 and "Traceback" not in err
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_bad_thread_count_in_the_environment_is_a_one_line_error(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("WARPMPM_CPU_THREADS", "two")
+    code = run_main(TINY + ["--json", str(tmp_path / "o.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "WARPMPM_CPU_THREADS='two'" in err and err.count("\n") == 1
     assert not list(tmp_path.iterdir())
 
 
