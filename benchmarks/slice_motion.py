@@ -26,7 +26,8 @@ from warpmpm.experiment.tasks import run_tasks  # noqa: E402
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
 KINDS = [("gt", "pinned"), ("gt-inplane", "inplane"), ("gt-inplane", "pinned"), ("affine", "inplane"), ("affine", "pinned"),
          ("registration", "inplane"), ("registration", "pinned"), ("registration-affine", "inplane"),
-         ("registration-affine", "pinned"), ("registration-bspline", "inplane"), ("registration-bspline", "pinned")]
+         ("registration-affine", "pinned"), ("registration-bspline", "inplane"), ("registration-bspline", "pinned"),
+         ("registration-demons", "inplane"), ("registration-demons", "pinned")]
 
 
 def mid_slices(prep, condition):

@@ -114,7 +114,7 @@ def test_propagate_uses_the_same_per_organ_slice_motion():
     np.testing.assert_allclose(d[m.organ_slice("duodenum")], np.tile([1.0, 0.0, 0.0], (m.counts()["duodenum"], 1)), atol=1e-9)
 
 
-@pytest.mark.parametrize("kind", ["gt-inplane", "registration", "registration-affine", "registration-bspline"])
+@pytest.mark.parametrize("kind", ["gt-inplane", "registration", "registration-affine", "registration-bspline", "registration-demons"])
 def test_every_target_kind_runs_end_to_end(kind):
     import warnings
 
@@ -161,11 +161,11 @@ def test_a_folding_bspline_field_falls_back_to_the_organ_aware_registration(monk
     assert out.estimate.error_mm == pytest.approx(organs.estimate.error_mm, abs=1e-9)  # the same targets as organ-aware
 
 
-def test_a_known_smooth_deformation_of_a_slice_is_recovered_by_the_bspline_field():
-    """A sinusoidal in-plane warp (up to 2 mm) of the phantom's mid-pancreas slice: the B-spline field recovers it
-    within 0.5 mm RMS over the organs, where one affine is 1.7 mm off."""
+def _smoothly_warped_slice():
+    """The phantom's mid-pancreas axial slice and the same slice under a known sinusoidal in-plane warp (up to 2 mm):
+    ``(case, stored, captured, organs_mask, fwd, centre)``, ``fwd`` the warp of stored in-plane points (N, 2, mm)."""
     from warpmpm.phantom import make_phantom
-    from warpmpm.registration import register_slice_bspline, slice_mask
+    from warpmpm.registration import slice_mask
     from warpmpm.slices import extract_slice
 
     case = make_phantom(resolution=1.0)
@@ -177,24 +177,55 @@ def test_a_known_smooth_deformation_of_a_slice_is_recovered_by_the_bspline_field
     def fwd(p):
         return p + np.stack([2.0 * np.sin(2 * np.pi * p[:, 1] / 120.0), 1.5 * np.cos(2 * np.pi * p[:, 0] / 150.0)], 1)
 
-    arr = sitk.GetArrayFromImage(stored)
-    o, sp = np.asarray(stored.GetOrigin()), np.asarray(stored.GetSpacing())
-    yy, xx = np.mgrid[0:arr.shape[0], 0:arr.shape[1]]
-    q = np.stack([o[0] + xx.ravel() * sp[0], o[1] + yy.ravel() * sp[1]], 1)
+    q = _pixel_points(stored, np.ones(sitk.GetArrayViewFromImage(stored).shape, bool))
     p = q.copy()
     for _ in range(10):  # the captured image at q shows the stored point p with fwd(p) = q
         p = p - (fwd(p) - q)
-    df = sitk.GetImageFromArray((p - q).reshape(arr.shape + (2,)), isVector=True)
+    df = sitk.GetImageFromArray((p - q).reshape(sitk.GetArrayViewFromImage(stored).shape + (2,)), isVector=True)
     df.CopyInformation(stored)
     captured = sitk.Resample(stored, stored, sitk.DisplacementFieldTransform(sitk.Cast(df, sitk.sitkVectorFloat64)),
                              sitk.sitkLinear, 0.0)
+    return case, stored, captured, mask, fwd, c, k
+
+
+def _pixel_points(img, where):
+    """In-plane positions (N, 2, mm) of the pixels of ``img`` where ``where`` (ny, nx) holds, row by row."""
+    o, sp = np.asarray(img.GetOrigin()), np.asarray(img.GetSpacing())
+    ys, xs = np.nonzero(where)
+    return np.stack([o[0] + xs * sp[0], o[1] + ys * sp[1]], 1)
+
+
+def test_a_known_smooth_deformation_of_a_slice_is_recovered_by_the_bspline_field():
+    """A sinusoidal in-plane warp (up to 2 mm) of the phantom's mid-pancreas slice: the B-spline field recovers it
+    within 0.5 mm RMS over the organs, where one affine is 1.7 mm off."""
+    from warpmpm.registration import register_slice_bspline
+
+    case, stored, captured, mask, fwd, c, _ = _smoothly_warped_slice()
     f = register_slice_bspline(stored, captured, c, mask)
-    ys, xs = np.nonzero(sitk.GetArrayFromImage(sitk.BinaryErode(mask, [2, 2])))
-    pts = np.stack([o[0] + xs * sp[0], o[1] + ys * sp[1]], 1)[::5]
+    pts = _pixel_points(stored, sitk.GetArrayFromImage(sitk.BinaryErode(mask, [2, 2])))[::5]
     rms = np.sqrt(np.mean(np.sum((f.forward(pts) - fwd(pts)) ** 2, axis=1)))
     rms_affine = np.sqrt(np.mean(np.sum((pts @ f.affine.A.T + f.affine.t_mm - fwd(pts)) ** 2, axis=1)))
     assert f.ok and f.min_jacobian > 0.5
     assert rms < 0.5 and rms_affine > 1.0
+
+
+def test_the_demons_refinement_recovers_a_known_deformation_over_an_organ_where_its_affine_cannot():
+    """The same warp, one organ at a time: the demons field started from an organ's own registered affine follows
+    the warp over that organ (measured 0.04 mm RMS over the pancreas, 0.004 over the stomach) where the affine
+    cannot (0.70 and 0.75 mm RMS off: over one organ the warp is close to, not exactly, affine)."""
+    from warpmpm.registration import register_organ_demons, slice_mask
+
+    case, stored, captured, mask, fwd, c, k = _smoothly_warped_slice()
+    own = {o: slice_mask(case.labels, case.geometry, "axial", k, c, [case.label_map[o]], dilate_mm=0.0) for o in case.label_map}
+    whole, per_organ = register_slice_organs(stored, captured, c, mask, own)
+    for organ in ("pancreas", "stomach"):
+        start = per_organ.get(organ, whole).affine
+        f = register_organ_demons(stored, captured, start, own[organ])
+        pts = _pixel_points(stored, sitk.GetArrayFromImage(sitk.BinaryErode(own[organ], [1, 1])))
+        rms = np.sqrt(np.mean(np.sum((f.forward(pts) - fwd(pts)) ** 2, axis=1)))
+        rms_affine = np.sqrt(np.mean(np.sum((pts @ start.A.T + start.t_mm - fwd(pts)) ** 2, axis=1)))
+        assert f.ok and f.min_jacobian > 0.5
+        assert rms < 0.2 and rms_affine > 0.5, (organ, rms, rms_affine)
 
 
 def test_a_particle_driven_along_no_direction_feels_no_force_even_with_a_carried_bias():

@@ -81,10 +81,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    "'auto:asc': psdl, that axial slice plus the best sagittal and/or coronal slice; default: mid-pancreas axial")
     p.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (under contact: the scenario number)")
     p.add_argument("--targets", default="registration", choices=["registration", "affine", "gt", "gt-inplane",
-                                                                       "registration-affine", "registration-bspline"],
+                                                                       "registration-affine", "registration-bspline", "registration-demons"],
                    help="slice motion: organ-aware registration of the captured slices (default: what images give), an affine "
                    "fitted to the GT (the paper's protocol), GT 3D positions (upper bound), GT in-plane part (ceiling of 2D "
-                   "registration), one registered affine per slice, or a registered B-spline field")
+                   "registration), one registered affine per slice, a registered B-spline field, or organ-aware registration refined "
+                   "organ by organ by demons fields")
     p.add_argument("--drive", default="pinned", choices=["inplane", "pinned"],
                    help="inplane: a slice drives only its in-plane components; pinned: the through-plane coordinate too")
     p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
@@ -133,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--organs", default="psdl", help="comma-separated combinations, or 'all'")
     s.add_argument("--orientations", default="axial")
     s.add_argument("--targets", default="affine", choices=["affine", "gt", "gt-inplane", "registration", "registration-affine",
-                                                           "registration-bspline"])
+                                                           "registration-bspline", "registration-demons"])
     s.add_argument("--drive", default="pinned", choices=["inplane", "pinned"])
     s.add_argument("--exclude-driven", action="store_true",
                    help="leave the driven particles out of the metrics (the multi-direction rule; default: only with several slices)")

@@ -18,11 +18,12 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+import SimpleITK as sitk
 
 from .errors import InputError, InputWarning
 from .images import Geometry
 from .model import ParticleModel
-from .registration import SliceField, capture_slice, register_slice_bspline, register_slice_organs, slice_mask
+from .registration import SliceField, capture_slice, register_organ_demons, register_slice_bspline, register_slice_organs, slice_mask
 from .slices import DrivingSlice, InPlaneAffine, driven_indices, extract_slice, in_plane_axes
 
 
@@ -164,7 +165,11 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
     with it); an organ with fewer than :data:`MIN_ORGAN_PIXELS` pixels takes the whole slice's. With
     ``"bspline"`` a cubic B-spline field on top of the affine gives every particle its own in-plane motion
     (:func:`~warpmpm.registration.register_slice_bspline`); a slice whose field folds falls back to the
-    organ-aware registration, with a warning and the reason in ``info["fallbacks"]``.
+    organ-aware registration, with a warning and the reason in ``info["fallbacks"]``. With ``"demons"`` the
+    organ-aware registration is refined organ by organ: each organ with at least :data:`MIN_ORGAN_PIXELS` pixels on
+    the slice gets a demons field started from its own motion (:func:`~warpmpm.registration.register_organ_demons`)
+    that moves its particles (``info["organ_fields"]``: slice -> organ -> field); a folding field falls back to the
+    organ's affine, with a warning and the reason in ``info["fallbacks"]``.
 
     Returns ``(targets, info)``; ``info`` holds the whole-slice affines (``affines``, one per slice),
     each slice's organ affines (``organ_affines``: slice -> organ -> affine), the mean time per slice
@@ -172,9 +177,9 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
     the in-plane distance between the targets and the true positions of the slices' pancreas particles.
     """
     positions_mm = model.positions_mm if positions_mm is None else np.asarray(positions_mm, dtype=np.float64)
-    if method not in ("organs", "affine", "bspline"):
-        raise InputError(f"unknown slice registration method {method!r}; use organs, affine or bspline")
-    affines, organ_affines, fields, walls, fallbacks = [], {}, {}, [], []
+    if method not in ("organs", "affine", "bspline", "demons"):
+        raise InputError(f"unknown slice registration method {method!r}; use organs, affine, bspline or demons")
+    affines, organ_affines, fields, organ_fields, walls, fallbacks = [], {}, {}, {}, [], []
     for s in slices:
         stored = extract_slice(planning_volume, geometry, s.orientation, s.index, centre_mm)
         captured = capture_slice(captured_volume, geometry, s.orientation, s.index, centre_mm, noise_sd=noise_sd,
@@ -194,7 +199,7 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
                              "the organ-aware registration is used instead")
             warnings.warn(f"registration of {s}: {fallbacks[-1].split(': ', 1)[1]}", InputWarning, stacklevel=2)
         own = {o: slice_mask(labels, geometry, s.orientation, s.index, centre_mm, [label_values[o]], dilate_mm=0.0)
-               for o in model.organs} if method in ("organs", "bspline") else {}
+               for o in model.organs} if method in ("organs", "bspline", "demons") else {}
         whole, per_organ = register_slice_organs(stored, captured, centre_mm, mask, own, MIN_ORGAN_PIXELS)
         if not whole.ok:
             raise InputError(f"registration of {s.orientation} slice {s.index} gave a degenerate transform ({whole.stop}); "
@@ -202,6 +207,19 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
         affines.append(whole.affine)
         organ_affines[s] = {o: r.affine for o, r in per_organ.items()}
         walls.append(extra + whole.wall_s + sum(r.wall_s for r in per_organ.values()))
+        if method == "demons":
+            organ_fields[s] = {}
+            for o, fp in own.items():
+                if int(np.count_nonzero(sitk.GetArrayViewFromImage(fp))) < MIN_ORGAN_PIXELS:
+                    continue
+                f = register_organ_demons(stored, captured, organ_affines[s].get(o, whole.affine), fp)
+                walls[-1] += f.wall_s
+                if f.ok:
+                    organ_fields[s][o] = f
+                else:
+                    fallbacks.append(f"{s}, {o}: the demons field folds (smallest Jacobian determinant {f.min_jacobian:.2f}); "
+                                     "the organ's affine is used instead")
+                    warnings.warn(f"registration of {s}: {fallbacks[-1].split(': ', 1)[1]}", InputWarning, stacklevel=2)
 
     whole = dict(zip(slices, affines))
     organ_of = np.asarray(model.organs)[model.organ_index]
@@ -214,11 +232,14 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
         for organ, aff in organ_affines[s].items():
             sel = organ_of[idx] == organ
             out[sel] = aff.apply(positions_mm[idx[sel]], e_u, e_v, centre_mm)
+        for organ, f in organ_fields.get(s, {}).items():
+            sel = organ_of[idx] == organ
+            out[sel] = field_motion(f, positions_mm[idx[sel]], e_u, e_v, centre_mm)
         return out
 
     targets = slice_targets(model, positions_mm, slices, moved)
     info: dict = {"wall_s": float(np.mean(walls)), "affines": affines, "organ_affines": organ_affines, "fields": fields,
-                  "method": method, "fallbacks": fallbacks}
+                  "organ_fields": organ_fields, "method": method, "fallbacks": fallbacks}
     if truth_mm is not None:
         err = in_plane_errors_mm(model, slices, targets.idx, targets.targets_mm, truth_mm)
         info["error_mm"] = float(err.mean()) if err.size else float("nan")

@@ -24,10 +24,12 @@ from .case import PreparedCase
 
 
 def propagate(model: ParticleModel, s: DrivingSlice, affine: InPlaneAffine, centre_mm: np.ndarray,
-              organ_affines: dict | None = None, field=None) -> np.ndarray:
+              organ_affines: dict | None = None, field=None, organ_fields: dict | None = None) -> np.ndarray:
     """Every particle moved by the slice's in-plane motion (mm), extruded along the slice normal; with
     ``organ_affines`` (organ-aware registration) each organ's particles take their organ's motion on the
-    slice, the organs absent from it the whole slice's: the same information the estimate is driven with."""
+    slice, the organs absent from it the whole slice's: the same information the estimate is driven with.
+    With ``organ_fields`` (organ -> deformable motion) an organ's particles take the motion of their point of
+    the slice in their organ's field."""
     e_u, e_v = in_plane_axes(model, s.orientation)
     if field is not None:  # a deformable slice motion: every particle takes the motion of its point of the slice
         return field_motion(field, model.positions_mm, e_u, e_v, centre_mm)
@@ -35,6 +37,9 @@ def propagate(model: ParticleModel, s: DrivingSlice, affine: InPlaneAffine, cent
     for organ, aff in (organ_affines or {}).items():
         sel = model.organ_slice(organ)
         out[sel] = aff.apply(model.positions_mm[sel], e_u, e_v, centre_mm)
+    for organ, f in (organ_fields or {}).items():
+        sel = model.organ_slice(organ)
+        out[sel] = field_motion(f, model.positions_mm[sel], e_u, e_v, centre_mm)
     return out
 
 

@@ -19,7 +19,8 @@ from ..slices import parse_slices
 from ..solver import SolverConfig
 
 Protocol = Literal["paper", "contact"]
-TargetKind = Literal["affine", "gt", "gt-inplane", "registration", "registration-affine", "registration-bspline"]
+TargetKind = Literal["affine", "gt", "gt-inplane", "registration", "registration-affine", "registration-bspline",
+                     "registration-demons"]
 DriveMode = Literal["inplane", "pinned"]
 Lattice = Literal["auto", "voxel", "isotropic"]
 Baseline = Literal["initial", "propagate", "volume_registration"]

@@ -63,8 +63,8 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         results["initial"] = score(model.positions_mm)
     if "propagate" in cfg.baselines:  # the first slice's motion, as the estimate gets it (per organ when organ-aware)
         results["propagate"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]),
-                                               tg.fields.get(slices[0])))
-        if tg.organ_affines.get(slices[0]) or tg.fields.get(slices[0]):
+                                               tg.fields.get(slices[0]), tg.organ_fields.get(slices[0])))
+        if tg.organ_affines.get(slices[0]) or tg.fields.get(slices[0]) or tg.organ_fields.get(slices[0]):
             results["propagate_affine"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm))
     if "volume_registration" in cfg.baselines:
         pos, info = volume_registration(prep, gt, model)

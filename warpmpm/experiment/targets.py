@@ -9,6 +9,8 @@
   whole slice and then each organ's footprint on it (organ-aware; the default).
 - ``registration-affine``: the same with one affine per slice (the paper's).
 - ``registration-bspline``: the whole slice's affine refined by a cubic B-spline field (deformable).
+- ``registration-demons``: the organ-aware registration, each organ's motion refined by a demons field started
+  from it (deformable and organ-aware).
 
 With ``drive="inplane"`` a slice drives only its in-plane components (the through-plane motion is left
 to the physics or to an orthogonal slice); ``"pinned"`` also holds the through-plane coordinate where
@@ -42,6 +44,7 @@ class RunTargets:
         in_plane_error_mm: mean in-plane distance of the targets of the slices' pancreas particles to their
             true positions (0 for the GT kinds), for every kind.
         fields: per slice, the deformable motion (``registration-bspline``), else empty.
+        organ_fields: per slice, each organ's deformable motion (``registration-demons``), else empty.
     """
 
     drive: DriveTargets
@@ -50,6 +53,7 @@ class RunTargets:
     registration: dict | None = None
     in_plane_error_mm: float = float("nan")
     fields: dict = field(default_factory=dict)
+    organ_fields: dict = field(default_factory=dict)
 
     @property
     def idx(self) -> np.ndarray:
@@ -96,9 +100,13 @@ def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_po
     case = prep.case
     planning, warped = planning_and_gt_volumes(case, gt)
     values = {o: case.label_map[o] for o in gt.model.organs}
-    method = {"registration": "organs", "registration-affine": "affine", "registration-bspline": "bspline"}[cfg.targets]
+    method = {"registration": "organs", "registration-affine": "affine", "registration-bspline": "bspline",
+              "registration-demons": "demons"}[cfg.targets]
     drive, info = registration_targets(model, slices, planning, warped, case.labels, case.geometry, values, prep.centre_mm,
                                        truth_mm=gt_pos, method=method)
     affines, organ_affines, fields = info.pop("affines"), info.pop("organ_affines"), info.pop("fields")
+    organ_fields = info.pop("organ_fields")
     info["organ_affines"] = {str(prep.to_input(s)): {o: a.to_json() for o, a in d.items()} for s, d in organ_affines.items()}
-    return RunTargets(drive, affines, organ_affines, info, info.get("error_mm", float("nan")), fields)
+    info["organ_fields"] = {str(prep.to_input(s)): {o: {"min_jacobian": f.min_jacobian, "wall_s": f.wall_s} for o, f in d.items()}
+                            for s, d in organ_fields.items()}
+    return RunTargets(drive, affines, organ_affines, info, info.get("error_mm", float("nan")), fields, organ_fields)
