@@ -12,8 +12,9 @@ body has settled (``wait_settled``: the settled mode, adaptive damping and a PD 
 changes alone against the fixed damping and PID drive it replaced), and run on to a fixed 6,000 steps (does
 the answer drift?). ``--grid-shift``: the soft block moved by 0, 1/4 and 1/2 cell against the grid. ``--quasistatic``: the settled mode's explicit solver beside the quasi-static one (:mod:`warpmpm.quasistatic`), same
 run, with the time ratio. ``--fem-convergence``: how far the reference is from its own continuum limit: the FEM on
-the particles' mesh against the FEM on a mesh twice as fine (each hexahedron cut in eight), and the settled MPM
-against both (a difference below the reference's own cannot be resolved by it). ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
+the particles' mesh against the FEM on meshes 2 and 3 times finer (``--levels``), the settled MPM against each, and
+with three levels the observed order of convergence and every answer against the Richardson-extrapolated
+continuum (a difference below the reference's own cannot be resolved by it). ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
 and 8 particles per cell, with the error by distance from the slice (in-plane and through-plane parts).
 """
 
@@ -103,7 +104,11 @@ def main(argv=None):
     p.add_argument("--grid-shift", action="store_true", help="only the soft block moved by 0, 1/4 and 1/2 cell against the grid")
     p.add_argument("--quasistatic", action="store_true", help="only the settled mode's explicit solver against the quasi-static one")
     p.add_argument("--fem-convergence", action="store_true",
-                   help="the FEM on the particles' mesh against a twice finer one, and the settled MPM against both")
+                   help="the FEM on the particles' mesh against finer ones (--levels), and the settled MPM against each")
+    p.add_argument("--levels", default="1,2", help="--fem-convergence: mesh refinements (1,2 or 1,2,3: with three, the "
+                   "observed order and the extrapolated continuum; h/3 needs ~10 GB and ~8 minutes a solve)")
+    p.add_argument("--scenes", default=None, help="--fem-convergence: comma-separated parts of scene names (default: all)")
+    p.add_argument("--loads", default=None, help="--fem-convergence: comma-separated parts of load names (default: all)")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR
     warnings.simplefilter("ignore")
@@ -113,7 +118,8 @@ def main(argv=None):
     if a.grid_shift:
         return grid_shift(size)
     if a.fem_convergence:
-        return fem_convergence(size)
+        return fem_convergence(size, tuple(int(v) for v in a.levels.split(",")), a.scenes and a.scenes.split(","),
+                               a.loads and a.loads.split(","))
     rules = SOLVERS if a.quasistatic else RULES
     rows = []
     print("| scene | load | " + " | ".join(r[0] for r in rules) + (" | time, quasi-static / explicit |" if a.quasistatic else " |"))
@@ -130,40 +136,70 @@ def main(argv=None):
     raw.save("fem_quasistatic" if a.quasistatic else "fem_reference", rows)
 
 
-def fem_convergence(size):
-    """Each scene and load: the FEM on the particles' mesh (h) and on a mesh twice as fine (h/2), and the settled MPM
-    (the default settled mode) against both; relative L2 over the non-driven particles, and by material half."""
+def _extrapolate(u):
+    """Richardson extrapolation of FEM answers on meshes of size h / r for r = 1, 2, 3 (``u[r]``): the observed order
+    p from the ratio of successive differences, and the continuum estimate ``u3 + (u3 - u2) 3^-p / (2^-p - 3^-p)``."""
+    from scipy.optimize import brentq
+
+    e12, e23 = np.linalg.norm(u[1] - u[2]), np.linalg.norm(u[2] - u[3])
+    ratio = e12 / max(e23, 1e-300)
+    try:
+        p = brentq(lambda q: (1 - 2.0**-q) / (2.0**-q - 3.0**-q) - ratio, 0.05, 8.0)
+    except ValueError:  # not in the asymptotic range: no extrapolation
+        return float("nan"), None
+    return float(p), u[3] + (u[3] - u[2]) * 3.0**-p / (2.0**-p - 3.0**-p)
+
+
+def fem_convergence(size, levels=(1, 2), scene_names=None, load_names=None):
+    """Each scene and load: the FEM on the particles' mesh (h) and on meshes ``levels`` times finer (h/2, h/3), the
+    settled MPM against each, and with three levels the observed order of convergence and every answer against the
+    Richardson-extrapolated continuum. The slice is pinned (all three components), as in the other tables: these
+    blocks are mirror-symmetric about it, so an in-plane drive has the same answer, and leaves the through-plane
+    translation and tilts free (a singular FEM system)."""
     rows = []
-    print("| scene | load | FEM h against FEM h/2 | settled MPM against FEM h | settled MPM against FEM h/2 | FEM h/2 solve s |")
-    print("|---|---|---|---|---|---|")
-    settled = ("settled", SolverConfig(device="cpu"), SETTLED, None)
+    cols = [f"FEM h/{a} against h/{b}" for a, b in zip(levels, levels[1:])] + [f"MPM against FEM h/{r}" for r in levels]
+    if len(levels) == 3:
+        cols += ["order p", "FEM h against continuum", "FEM h/3 against continuum", "MPM against continuum"]
+    print("| scene | load | " + " | ".join(cols) + " |")
+    print("|---|---|" + "---|" * len(cols))
+    settled = SolverConfig(device="cpu")
     for sname, model in scenes(size).items():
+        if scene_names and not any(n in sname for n in scene_names):
+            continue
         for lname, load in LOADS.items():
+            if load_names and not any(n in lname for n in load_names):
+                continue
             k = int(model.voxel_ijk[:, 2].max()) // 2
             sl = [DrivingSlice("axial", k)]
             idx, tg = affine_targets(model, model.positions_mm, sl, [load], model.positions_mm.mean(0))
             free = np.ones(model.n, bool)
             free[idx] = False
-            u_h = fem_displacement_mm(model, idx, tg)
-            t0 = time.perf_counter()
-            u_h2 = fem_displacement_mm(model, idx, tg, refine=2)
-            wall = time.perf_counter() - t0
-            est = SliceDrivenEstimator(model, sl, solver_config=settled[1], extra_points_mm=tg, convergence=SETTLED)
-            u_mpm = est.estimate(tg).positions_mm - model.positions_mm
+            u, walls = {}, {}
+            for r in levels:
+                t0 = time.perf_counter()
+                u[r] = fem_displacement_mm(model, idx, tg, refine=r)[free]
+                walls[r] = time.perf_counter() - t0
+            est = SliceDrivenEstimator(model, sl, solver_config=settled, extra_points_mm=tg, convergence=SETTLED)
+            u_mpm = (est.estimate(tg).positions_mm - model.positions_mm)[free]
 
-            def rel(a, b, sel=free):
-                return float(np.linalg.norm(a[sel] - b[sel]) / np.linalg.norm(b[sel]))
+            def rel(a, b):
+                return float(np.linalg.norm(a - b) / np.linalg.norm(b))
 
-            second = model.organ_index > 0  # the second material's half (the kidney or duodenum), where there is one
-            row = {"scene": sname, "load": lname, "fem_h_vs_h2": rel(u_h, u_h2), "mpm_vs_fem_h": rel(u_mpm, u_h),
-                   "mpm_vs_fem_h2": rel(u_mpm, u_h2), "fem_h2_wall_s": wall}
-            if second.any():
-                row.update({"second_half": {"fem_h_vs_h2": rel(u_h, u_h2, free & second), "mpm_vs_fem_h": rel(u_mpm, u_h, free & second),
-                                            "mpm_vs_fem_h2": rel(u_mpm, u_h2, free & second)}})
+            row = {"scene": sname, "load": lname, "fem_wall_s": walls,
+                   "fem_steps": {f"h/{a} vs h/{b}": rel(u[a], u[b]) for a, b in zip(levels, levels[1:])},
+                   "mpm_vs_fem": {f"h/{r}": rel(u_mpm, u[r]) for r in levels}}
+            cells = [f"{100 * v:.1f} %" for v in row["fem_steps"].values()] + [f"{100 * v:.1f} %" for v in row["mpm_vs_fem"].values()]
+            if len(levels) == 3:
+                p, ustar = _extrapolate(u)
+                row["order"] = p
+                if ustar is not None:
+                    row["against_continuum"] = {"fem_h": rel(u[1], ustar), "fem_h3": rel(u[3], ustar), "mpm": rel(u_mpm, ustar)}
+                    cells += [f"{p:.2f}"] + [f"{100 * v:.1f} %" for v in row["against_continuum"].values()]
+                else:
+                    cells += ["not asymptotic", "", "", ""]
             rows.append(row)
-            print(f"| {sname} | {lname} | {100 * row['fem_h_vs_h2']:.1f} % | {100 * row['mpm_vs_fem_h']:.1f} % | "
-                  f"{100 * row['mpm_vs_fem_h2']:.1f} % | {wall:.0f} |", flush=True)
-    raw.save("fem_convergence", rows)
+            print(f"| {sname} | {lname} | " + " | ".join(cells) + " |", flush=True)
+    raw.save("fem_convergence" + ("_3levels" if len(levels) == 3 else ""), rows)
 
 
 def ppc_sweep(size):
