@@ -133,16 +133,17 @@ class Progress:
 def size_report(prep: PreparedCase, cfg: CaseConfig) -> str:
     """The model's size, its grid and the memory the largest simulation of the run needs (the GT's finer grid)."""
     from ..groundtruth import gt_solver_config
-    from ..solver import grid_layout, memory_estimate_bytes
+    from ..solver import cpu_threads, default_device, grid_layout, memory_estimate_bytes
 
     m = prep.full_model
     dx, _, shape = grid_layout(m, replace(cfg.solver, device=cfg.device))
     gdx, _, gshape = grid_layout(m, gt_solver_config(cfg.solver, cfg.device))
-    mem = max(memory_estimate_bytes(m.n, shape), memory_estimate_bytes(m.n, gshape))
+    threads = cpu_threads(cfg.solver, cfg.device or default_device())  # each thread of a split CPU step has its own grid copy
+    mem = max(memory_estimate_bytes(m.n, shape, threads), memory_estimate_bytes(m.n, gshape, threads))
     lattice = f", isotropic {m.lattice.spacing_mm[0]:.2f} mm lattice (thick slices)" if m.lattice is not None else ""
     return (f"model: {m.n:,} particles ({', '.join(f'{o} {c:,}' for o, c in m.counts().items())}){lattice}; estimate grid "
             f"{'x'.join(map(str, shape))} of {dx:.2f} mm, ground truth {'x'.join(map(str, gshape))} of {gdx:.2f} mm; "
-            f"~{mem / 1e6:.0f} MB")
+            f"~{mem / 1e6:.0f} MB" + (f"; {threads} CPU threads a step" if threads > 1 else ""))
 
 
 def run_case(cfg: CaseConfig, recorder: Recorder | None = None, progress: Progress | None = None) -> RunResult:
