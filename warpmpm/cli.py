@@ -80,12 +80,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
                    "'auto:asc': psdl, that axial slice plus the best sagittal and/or coronal slice; default: mid-pancreas axial")
     p.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (under contact: the scenario number)")
-    p.add_argument("--targets", default="registration", choices=["registration", "affine", "gt", "gt-inplane",
-                                                                       "registration-affine", "registration-bspline", "registration-demons"],
-                   help="slice motion: organ-aware registration of the captured slices (default: what images give), an affine "
-                   "fitted to the GT (the paper's protocol), GT 3D positions (upper bound), GT in-plane part (ceiling of 2D "
-                   "registration), one registered affine per slice, a registered B-spline field, or organ-aware registration refined "
-                   "organ by organ by demons fields")
+    p.add_argument("--targets", default="registration-demons", choices=["registration-demons", "registration", "affine", "gt",
+                                                                              "gt-inplane", "registration-affine", "registration-bspline"],
+                   help="slice motion: organ-aware registration of the captured slices refined organ by organ by demons fields "
+                   "(default: what images give), the organ-aware affines alone, an affine fitted to the GT (the paper's protocol), "
+                   "GT 3D positions (upper bound), GT in-plane part (ceiling of 2D registration), one registered affine per slice, "
+                   "or a registered B-spline field")
     p.add_argument("--drive", default="pinned", choices=["inplane", "pinned"],
                    help="inplane: a slice drives only its in-plane components; pinned: the through-plane coordinate too")
     p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
