@@ -134,27 +134,30 @@ def test_every_target_kind_runs_end_to_end(kind):
         assert all("folds" in f for f in out.registration["fallbacks"])
 
 
-def test_a_folding_bspline_field_falls_back_to_the_organ_aware_registration(monkeypatch):
-    """Whatever the field, a slice whose B-spline motion folds gets the organ-aware targets, with a warning
-    and the reason in the run's JSON (the coarse phantom's fields fold or not depending on the GT)."""
+@pytest.mark.parametrize("kind,function,message", [("registration-bspline", "register_slice_bspline", "B-spline field folds"),
+                                                    ("registration-demons", "register_organ_demons", "demons field folds")])
+def test_a_folding_deformable_field_falls_back_to_the_organ_aware_registration(monkeypatch, kind, function, message):
+    """Whatever the field, a slice (B-spline) or an organ (demons) whose deformable motion folds gets the organ-aware
+    targets, with a warning and the reason in the run's JSON (the coarse phantom's fields fold or not depending on
+    the GT)."""
     import dataclasses
     import warnings
 
     import warpmpm.targets as T
     from warpmpm.experiment import CaseConfig, run_case
 
-    real = T.register_slice_bspline
+    real = getattr(T, function)
 
     def folding(*args, **kwargs):
         return dataclasses.replace(real(*args, **kwargs), ok=False, min_jacobian=-0.5)
 
-    monkeypatch.setattr(T, "register_slice_bspline", folding)
+    monkeypatch.setattr(T, function, folding)
     cfg = dict(phantom_resolution=3.0, protocol="contact", drive="inplane", device="cpu", baselines=("propagate",), max_steps=800)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = run_case(CaseConfig(targets="registration-bspline", **cfg))
+        out = run_case(CaseConfig(targets=kind, **cfg))
     assert out.registration["fallbacks"] and "folds" in out.registration["fallbacks"][0]
-    assert any("B-spline field folds" in str(w.message) for w in caught)
+    assert any(message in str(w.message) for w in caught)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         organs = run_case(CaseConfig(targets="registration", **cfg))
