@@ -18,6 +18,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from .errors import InputError
+from .gauss_newton import GaussNewtonConfig, ncc, register_affine_gn
 from .images import Geometry
 from .slices import InPlaneAffine, extract_slice
 
@@ -62,6 +63,9 @@ def crop_to_mask(fixed: sitk.Image, moving: sitk.Image, mask: sitk.Image, margin
     return (sitk.RegionOfInterest(fixed, size, lo), sitk.RegionOfInterest(moving, size, lo),
             sitk.RegionOfInterest(sitk.Cast(mask, sitk.sitkUInt8), size, lo))
 
+
+#: The slice registration backends (:func:`register_slices`).
+BACKENDS = ("itk", "gauss-newton")
 
 #: Slices up to this many pixels are registered on one ITK thread by :func:`register_slice_organs` (measured with
 #: ``benchmarks/registration_speed.py``: 128 x 128 and 85 x 85 slices 31 ms on one thread against 37 on two;
@@ -110,7 +114,7 @@ class SliceRegistration:
 def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, *, mask: sitk.Image | None = None,
                     metric: str = "correlation", iterations: int = 100, levels: tuple[int, ...] = (4, 2, 1),
                     sampling: float = 0.25, seed: int = 1, crop_margin_mm: float = 40.0,
-                    initial: InPlaneAffine | None = None) -> SliceRegistration:
+                    initial: InPlaneAffine | None = None, backend: str = "itk", linear_prior: float = 0.0) -> SliceRegistration:
     """2D affine registration of the stored slice (t-1) onto the captured slice (t).
 
     ``metric``: ``correlation`` (normalised cross-correlation: robust to the intensity scaling
@@ -118,7 +122,16 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
     planning contour on the stored slice, dilated) restricts the metric, and both slices are
     cropped to its bounding box plus ``crop_margin_mm``. Raises :class:`InputError` for a
     blank or constant slice; returns ``ok=False`` when the result is non-finite or degenerate.
+
+    ``backend``: ``"itk"`` (SimpleITK's registration framework, regular-step gradient descent; ``metric``,
+    ``sampling`` and ``seed`` apply to it) or ``"gauss-newton"`` (:mod:`warpmpm.gauss_newton`: the same
+    correlation metric over every mask pixel, inverse-compositional Gauss-Newton; ``levels`` and
+    ``iterations`` apply per level; the ``metric`` value it returns is ``-NCC``). ``linear_prior``
+    (Gauss-Newton only): :attr:`warpmpm.gauss_newton.GaussNewtonConfig.linear_prior`, toward ``initial``'s linear
+    part (the identity without one).
     """
+    if backend not in BACKENDS:
+        raise InputError(f"unknown slice registration backend {backend!r}; use one of {', '.join(BACKENDS)}")
     for name, im in (("stored", stored), ("captured", captured)):
         arr = sitk.GetArrayViewFromImage(im)
         finite = np.isfinite(arr)
@@ -126,10 +139,12 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
             raise InputError(f"the {name} slice holds {int((~finite).sum())} non-finite (NaN or Inf) pixels; nothing can be registered")
         if float(arr.max() - arr.min()) <= 1e-6:
             raise InputError(f"the {name} slice is blank or constant; nothing to register")
-    fixed = sitk.Cast(captured, sitk.sitkFloat32)
-    moving = sitk.Cast(stored, sitk.sitkFloat32)
+    fixed = captured if captured.GetPixelID() == sitk.sitkFloat32 else sitk.Cast(captured, sitk.sitkFloat32)
+    moving = stored if stored.GetPixelID() == sitk.sitkFloat32 else sitk.Cast(stored, sitk.sitkFloat32)
     if mask is not None:
         fixed, moving, mask = crop_to_mask(fixed, moving, mask, crop_margin_mm)
+    if backend == "gauss-newton":
+        return _register_gn(moving, fixed, mask, centre_mm, initial, levels, iterations, linear_prior)
     reg = sitk.ImageRegistrationMethod()
     if metric == "correlation":
         reg.SetMetricAsCorrelation()
@@ -179,9 +194,22 @@ def register_slices(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndar
                              int(reg.GetOptimizerIteration()), reg.GetOptimizerStopConditionDescription(), wall, ok)
 
 
+def _register_gn(stored, captured, mask, centre_mm, initial, levels, iterations, linear_prior) -> SliceRegistration:
+    if mask is None:
+        mask = sitk.Image(stored.GetSize(), sitk.sitkUInt8) + 1
+        mask.CopyInformation(stored)
+    t0 = time.perf_counter()
+    r = register_affine_gn(stored, captured, mask, initial=None if initial is None else (initial.A, initial.t_mm),
+                           config=GaussNewtonConfig(levels=tuple(levels), iterations=min(int(iterations), 30),
+                                                    linear_prior=float(linear_prior)))
+    wall = time.perf_counter() - t0
+    return SliceRegistration(r.A, r.t_mm, np.asarray(centre_mm, dtype=np.float64), -r.ncc, r.iterations, r.stop, wall, r.ok)
+
+
 def register_slice_organs(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, mask: sitk.Image,
                           organ_masks: dict[str, sitk.Image], min_pixels: int = 25,
-                          max_slide_mm: float = 10.0) -> tuple[SliceRegistration, dict]:
+                          max_slide_mm: float = 10.0, backend: str = "itk",
+                          linear_prior: float = 0.0) -> tuple[SliceRegistration, dict]:
     """Organ-aware 2D registration: the whole slice (metric over ``mask``), then each organ's footprint on it
     (``organ_masks``: organ -> its pixels on the stored slice) on its own, starting from the whole slice's
     motion, so organs on one slice may move apart or slide along each other. An organ's own motion is kept
@@ -189,15 +217,20 @@ def register_slice_organs(stored: sitk.Image, captured: sitk.Image, centre_mm: n
     ``max_slide_mm`` of it and scales by 0.8-1.25 of it; an organ with fewer than ``min_pixels`` pixels,
     or whose own motion is refused, takes the whole slice's.
 
+    ``backend``, ``linear_prior``: those of :func:`register_slices`, for every registration of the chain (the
+    whole slice's prior pulls toward the identity, an organ's toward the whole slice's motion; the fit comparison
+    uses the same correlation either way).
+
     Returns the whole slice's :class:`SliceRegistration` and organ -> :class:`SliceRegistration`.
     """
     small = captured.GetNumberOfPixels() <= ONE_THREAD_MAX_PIXELS
     with one_itk_thread() if small else nullcontext():
-        return _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_pixels, max_slide_mm)
+        return _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_pixels, max_slide_mm, backend,
+                                      linear_prior)
 
 
-def _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_pixels, max_slide_mm):
-    whole = register_slices(stored, captured, centre_mm, mask=mask)
+def _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_pixels, max_slide_mm, backend, linear_prior):
+    whole = register_slices(stored, captured, centre_mm, mask=mask, backend=backend, linear_prior=linear_prior)
     out = {}
     if not whole.ok:
         return whole, out
@@ -207,9 +240,13 @@ def _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_p
             continue
         radius = [max(1, int(round(4.0 / sp))) for sp in own.GetSpacing()]  # the organ's edge is in its footprint
         footprint = sitk.BinaryDilate(sitk.Cast(own, sitk.sitkUInt8), radius)
-        r = register_slices(stored, captured, centre_mm, mask=footprint, initial=whole.affine, levels=(2, 1), iterations=60)
-        if r.ok and _organ_motion_plausible(own, whole.affine, r.affine, max_slide_mm) and \
-                slice_metric(stored, captured, footprint, r.affine) < slice_metric(stored, captured, footprint, whole.affine):
+        r = register_slices(stored, captured, centre_mm, mask=footprint, initial=whole.affine, levels=(2, 1), iterations=60,
+                            backend=backend, linear_prior=linear_prior)
+        if backend == "gauss-newton":
+            better = ncc(stored, captured, footprint, r.A, r.t_mm) > ncc(stored, captured, footprint, whole.A, whole.t_mm) if r.ok else False
+        else:
+            better = slice_metric(stored, captured, footprint, r.affine) < slice_metric(stored, captured, footprint, whole.affine)
+        if r.ok and _organ_motion_plausible(own, whole.affine, r.affine, max_slide_mm) and better:
             out[organ] = r
     return whole, out
 

@@ -153,7 +153,7 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
                          captured_volume: np.ndarray, labels: np.ndarray, geometry: Geometry, label_values: dict[str, int],
                          centre_mm: np.ndarray, *, truth_mm: np.ndarray | None = None, noise_sd: float = 0.0,
                          in_plane_factor: float = 1.0, method: str = "organs", positions_mm: np.ndarray | None = None,
-                         ) -> tuple[DriveTargets, dict]:
+                         backend: str = "itk") -> tuple[DriveTargets, dict]:
     """Targets from registering each driving slice of ``planning_volume`` with the same slice of
     ``captured_volume`` (both (z, y, x) on ``geometry``); ``positions_mm`` is the state at t-1 (default: planning).
 
@@ -169,7 +169,8 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
     organ-aware registration is refined organ by organ: each organ with at least :data:`MIN_ORGAN_PIXELS` pixels on
     the slice gets a demons field started from its own motion (:func:`~warpmpm.registration.register_organ_demons`)
     that moves its particles (``info["organ_fields"]``: slice -> organ -> field); a folding field falls back to the
-    organ's affine, with a warning and the reason in ``info["fallbacks"]``.
+    organ's affine, with a warning and the reason in ``info["fallbacks"]``. ``backend``: the affine
+    registrations' optimiser (:func:`~warpmpm.registration.register_slices`; the B-spline and demons fields are ITK's).
 
     Returns ``(targets, info)``; ``info`` holds the whole-slice affines (``affines``, one per slice),
     each slice's organ affines (``organ_affines``: slice -> organ -> affine), the mean time per slice
@@ -200,7 +201,7 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
             warnings.warn(f"registration of {s}: {fallbacks[-1].split(': ', 1)[1]}", InputWarning, stacklevel=2)
         own = {o: slice_mask(labels, geometry, s.orientation, s.index, centre_mm, [label_values[o]], dilate_mm=0.0)
                for o in model.organs} if method in ("organs", "bspline", "demons") else {}
-        whole, per_organ = register_slice_organs(stored, captured, centre_mm, mask, own, MIN_ORGAN_PIXELS)
+        whole, per_organ = register_slice_organs(stored, captured, centre_mm, mask, own, MIN_ORGAN_PIXELS, backend=backend)
         if not whole.ok:
             raise InputError(f"registration of {s.orientation} slice {s.index} gave a degenerate transform ({whole.stop}); "
                              "targets would be nonsense")

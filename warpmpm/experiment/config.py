@@ -69,6 +69,10 @@ class CaseConfig:
     fitted to the GT, the GT's 3D positions (an upper bound no image gives), their in-plane part (the
     ceiling of any 2D registration), or registration of synthetic captured slices (organ-aware, or one
     affine per slice)."""
+    registration: Literal["itk", "gauss-newton"] = "itk"
+    """The slice registration's optimiser for the ``registration*`` targets
+    (:func:`warpmpm.registration.register_slices`): ITK's gradient descent or Gauss-Newton, the same correlation
+    metric."""
     drive: DriveMode = "pinned"
     """``inplane``: a slice drives only the components in its plane; ``pinned``: also the through-plane
     coordinate (held where it was). ``gt`` targets are always driven in 3D."""
@@ -120,6 +124,8 @@ class CaseConfig:
         if not (isinstance(self.phantom_resolution, (int, float)) and math.isfinite(self.phantom_resolution)
                 and 0.25 <= self.phantom_resolution <= 16):
             raise InputError(f"phantom resolution must be a finite number in 0.25..16, got {self.phantom_resolution!r}")
+        if self.registration not in ("itk", "gauss-newton"):
+            raise InputError(f"unknown slice registration backend {self.registration!r}; use itk or gauss-newton")
         parse_organs(self.organs)
         if self.slices is not None and self.slices != "" and not self.slices.startswith("auto"):
             parse_slices(self.slices)

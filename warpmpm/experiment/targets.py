@@ -103,7 +103,7 @@ def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_po
     method = {"registration": "organs", "registration-affine": "affine", "registration-bspline": "bspline",
               "registration-demons": "demons"}[cfg.targets]
     drive, info = registration_targets(model, slices, planning, warped, case.labels, case.geometry, values, prep.centre_mm,
-                                       truth_mm=gt_pos, method=method)
+                                       truth_mm=gt_pos, method=method, backend=cfg.registration)
     affines, organ_affines, fields = info.pop("affines"), info.pop("organ_affines"), info.pop("fields")
     organ_fields = info.pop("organ_fields")
     info["organ_affines"] = {str(prep.to_input(s)): {o: a.to_json() for o, a in d.items()} for s, d in organ_affines.items()}
