@@ -363,8 +363,9 @@ class SliceDrivenEstimator:
         # the "auto" damping and the default integral follow the stopping rule given here (not a per-frame override)
         self.solver = MPMSolver(self.mpm, adaptive=rule == "adaptive" or (rule == "auto" and settle))
         self.solver.set_driven(self.driven)
-        #: the Newton / conjugate-gradient solver of ``SolverConfig(method="quasistatic")``; None: explicit steps
-        self.quasistatic = QuasiStaticSolver(self.mpm, self.mpm.config.quasistatic) if self.mpm.config.method == "quasistatic" else None
+        #: the Newton / conjugate-gradient solver of ``SolverConfig(method="quasistatic" | "auto")``; None: explicit steps
+        self.quasistatic = (QuasiStaticSolver(self.mpm, self.mpm.config.quasistatic)
+                            if self.mpm.config.method in ("quasistatic", "auto") else None)
         self.drive_config = drive_config or DriveConfig()
         self.gains = self.drive_config.resolve(self.mpm.dt_s, self.mpm.dx_mm, settle=settle)
         d = self.mpm.device
@@ -488,8 +489,13 @@ class SliceDrivenEstimator:
         if axes.shape != (nd, 3, 3) or not np.all(np.isfinite(axes)):
             raise InputError(f"driven axes must be finite projectors of shape ({nd}, 3, 3), got {axes.shape}")
         self._axes.assign(axes.astype(np.float32))
-        if self.quasistatic is not None:
+        trial = None
+        if self.mpm.config.method == "quasistatic":
             return self._estimate_quasistatic(targets_mm, axes)
+        if self.mpm.config.method == "auto":
+            trial = self._estimate_quasistatic(targets_mm, axes, trial=True)
+            if trial.converged:
+                return trial
         conv = ConvergenceMonitor(convergence or self.convergence, stall_mm=0.25 * self.mpm.dx_mm)
         window = conv.config.th_s
         last_x = self.state.x.numpy().copy()  # on the CPU .numpy() is a view of the live buffer
@@ -532,6 +538,9 @@ class SliceDrivenEstimator:
         min_det, collapsed = float(det.min()), float(np.mean(det < 0.1))
         result = DriveResult(self.positions_mm(), self._steps_run(len(rel_hist)), wall, np.asarray(rel_hist), np.asarray(rms_hist),
                              conv.converged, conv.reason, g, conv.settled, conv.body_motion_mm, min_det)
+        if trial is not None:  # "auto": the quasi-static iterations that came first are part of the frame
+            result.method, result.linear_iterations = "quasistatic+explicit", trial.linear_iterations
+            result.wall_s += trial.wall_s
         if conv.reason == "stalled":
             warnings.warn(f"estimate stalled: it stopped changing {rms_hist[-1]:.2f} mm (RMS) from its targets after {conv.steps} "
                           f"steps, more than {conv.stall_mm:.2f} mm; the targets may be unreachable"
@@ -546,15 +555,21 @@ class SliceDrivenEstimator:
                           RuntimeWarning, stacklevel=2)
         return result
 
-    def _estimate_quasistatic(self, targets_mm: np.ndarray, axes: np.ndarray) -> DriveResult:
+    def _estimate_quasistatic(self, targets_mm: np.ndarray, axes: np.ndarray, trial: bool = False) -> DriveResult:
         """One frame by the quasi-static solver (:mod:`warpmpm.quasistatic`): the settled equilibrium under the
         drive's spring; the ConvergenceConfig's rules do not apply (the solver stops when an iteration moves no
-        particle by more than ``QuasiStaticConfig.settle_mm``)."""
+        particle by more than ``QuasiStaticConfig.settle_mm``). ``trial`` (``method="auto"``): at most
+        ``auto_newton_iterations``, stopping at a capped linear solve, and no warning when it has not settled (the
+        explicit steps go on from there)."""
         nd = len(self.driven)
         t0 = time.perf_counter()
         self.quasistatic.set_drive(self.driven, targets_mm, axes)
-        res = self.quasistatic.solve(self.state)
+        qc = self.quasistatic.config
+        res = self.quasistatic.solve(self.state, max_iterations=qc.auto_newton_iterations if trial else None, stop_at_cg_cap=trial)
         wall = time.perf_counter() - t0
+        if res.settled:  # the PID's integral and feed-forward belong to an explicit frame's equilibrium; none holds this one
+            self._integral.zero_()
+            self._bias.zero_()
         reach = np.einsum("nij,nj->ni", axes, targets_mm - self.particles.center_mm())
         scale = math.sqrt(max(float(np.sum(reach**2)), 1e-30) / nd)
         rms = np.asarray(res.rms_history_mm, dtype=np.float64)
@@ -562,6 +577,9 @@ class SliceDrivenEstimator:
         if self.callback is not None:
             for k in range(len(rms)):
                 self.callback(self, k + 1, float(rel[k]), float(rms[k]))
+        if trial and not res.settled:
+            return DriveResult(self.positions_mm(), res.newton_iterations, wall, rel, rms, False, "max_iterations", None, False,
+                               res.max_move_mm, float("nan"), method="quasistatic", linear_iterations=res.cg_iterations)
         self.frames += 1
         det = np.linalg.det(self.state.F.numpy().astype(np.float64))
         result = DriveResult(self.positions_mm(), res.newton_iterations, wall, rel, rms, res.settled,

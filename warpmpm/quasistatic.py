@@ -609,8 +609,10 @@ class QuasiStaticSolver:
         self._driven = driven
         self._driven_wp = wp.array(driven.astype(np.int32), dtype=int, device=m.device)
 
-    def solve(self, state: State) -> QuasiStaticResult:
-        """Newton iterations from ``state`` until it has settled (or ``max_newton_iterations``); in place."""
+    def solve(self, state: State, max_iterations: int | None = None, stop_at_cg_cap: bool = False) -> QuasiStaticResult:
+        """Newton iterations from ``state`` until it has settled (or ``max_iterations``, default
+        ``max_newton_iterations``); in place. ``stop_at_cg_cap``: also stop (not settled) after the first iteration
+        whose linear solve ran into ``max_cg_iterations`` (``SolverConfig(method="auto")`` then goes on explicitly)."""
         cfg, m, d = self.config, self.model, self.model.device
         self._state = state
         state.v.zero_()
@@ -623,7 +625,8 @@ class QuasiStaticSolver:
         max_step = cfg.max_move_cells * self._dx
         reg = 1.0  # the regularisation, a multiple of the configured one
         it = 0
-        for it in range(1, cfg.max_newton_iterations + 1):
+        capped = False
+        for it in range(1, (cfg.max_newton_iterations if max_iterations is None else int(max_iterations)) + 1):
             self.force.zero_()
             self.diag.zero_()
             self.node_mass.zero_()
@@ -638,8 +641,9 @@ class QuasiStaticSolver:
             n_cg, done = self._conjugate_gradient(state, k_reg, COARSE_AFTER if cfg.coarse_modes == "rigid" else cfg.max_cg_iterations)
             if not done and cfg.coarse_modes == "rigid":
                 self._build_coarse(state, k_reg)
-                more, _ = self._conjugate_gradient(state, k_reg, cfg.max_cg_iterations)
+                more, done = self._conjugate_gradient(state, k_reg, cfg.max_cg_iterations)
                 n_cg += more
+            capped = not done
             cg_total += n_cg
             # the step's longest particle move (nodes at a stencil's fringe may move far: they carry almost no weight)
             wp.launch(move_particles, m.n, [self.du, 1.0, 0, self._dx, self._ny, self._nz, self._x_min, self._x_max, state.x, state.F,
@@ -667,6 +671,8 @@ class QuasiStaticSolver:
             remaining = moved * ratio / (1.0 - ratio) if ratio < 1.0 else float("inf")
             if moved < cfg.settle_mm and remaining < cfg.settle_mm and (rms < cfg.drive_tol_mm or not cfg.exact_drive):
                 settled = True
+                break
+            if stop_at_cg_cap and capped:
                 break
         self._state = None
         return QuasiStaticResult(it, cg_total, settled, move_hist[-1] if move_hist else 0.0, rms_hist, move_hist)

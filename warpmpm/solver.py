@@ -73,12 +73,17 @@ class QuasiStaticConfig:
     coarse_modes: Literal["none", "rigid"] = "rigid"
     """Two-level preconditioner: ``"rigid"`` adds a coarse correction over each organ's rigid motions to the Jacobi one
     (the slow modes of a scene whose stiff organs hang on a soft one); ``"none"``: Jacobi alone."""
+    auto_newton_iterations: int = 3
+    """``SolverConfig(method="auto")``: Newton iterations the quasi-static solve gets before the frame goes on with
+    explicit steps from where it stopped (it also stops at the first iteration whose linear solve reaches
+    ``max_cg_iterations``): a frame that starts near its equilibrium (a predicted tracker frame: measured, 1
+    iteration) is done at the quasi-static price, one that does not costs at most this many iterations more."""
     max_strain_step: float = 0.2
     """... and changes no particle's deformation by more than this (Frobenius norm of the displacement gradient of
     the step): the small-strain stiffness is the Hessian at rest, so a longer step could invert an element."""
 
     def __post_init__(self):
-        for name in ("max_newton_iterations", "max_cg_iterations"):
+        for name in ("max_newton_iterations", "max_cg_iterations", "auto_newton_iterations"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise InputError(f"QuasiStaticConfig.{name} must be a positive integer, got {v!r}")
@@ -154,7 +159,10 @@ class SolverConfig:
             steps under the PID drive, stopped by :class:`warpmpm.driving.ConvergenceConfig` (the paper's method).
             ``"quasistatic"``: Newton iterations with a matrix-free conjugate-gradient solve on the same grid
             (:mod:`warpmpm.quasistatic`): the settled equilibrium directly, in a fraction of the time the explicit
-            solver needs to wait for it (benchmarks/README.md); sticky contact only.
+            solver needs to wait for it (benchmarks/README.md); sticky contact only. ``"auto"``: the quasi-static
+            solve first, for at most ``QuasiStaticConfig.auto_newton_iterations``; a frame it has not settled by then
+            goes on with explicit steps from there (the result's ``method`` says which finished it). The tracker's
+            default, where a predicted frame starts in equilibrium; sticky contact only.
         quasistatic: settings of the ``"quasistatic"`` method.
         cpu_threads: on the CPU, threads an explicit step splits its particle and grid kernels over
             (:mod:`warpmpm.parallel`: Warp runs each CPU launch on one core, and launches over disjoint
@@ -184,7 +192,7 @@ class SolverConfig:
     contact: Literal["sticky", "sliding"] = "sticky"
     friction: float = 0.0
     bonded: tuple[tuple[str, ...], ...] = (("pancreas", "duodenum"),)
-    method: Literal["explicit", "quasistatic"] = "explicit"
+    method: Literal["explicit", "quasistatic", "auto"] = "explicit"
     quasistatic: QuasiStaticConfig = QuasiStaticConfig()
     cpu_threads: int | None = None
 
@@ -213,12 +221,12 @@ class SolverConfig:
                 or not 0 < lo_hi[0] <= 1 <= lo_hi[1]):
             raise InputError(f"SolverConfig.damping_bounds must be (low, high) with 0 < low <= 1 <= high, got {lo_hi!r}")
         finite("damping_memory_steps", lo=1.0, strict=False)
-        if self.method not in ("explicit", "quasistatic"):
-            raise InputError(f"SolverConfig.method must be 'explicit' or 'quasistatic', got {self.method!r}")
+        if self.method not in ("explicit", "quasistatic", "auto"):
+            raise InputError(f"SolverConfig.method must be 'explicit', 'quasistatic' or 'auto', got {self.method!r}")
         if not isinstance(self.quasistatic, QuasiStaticConfig):
             raise InputError(f"SolverConfig.quasistatic must be a QuasiStaticConfig, got {type(self.quasistatic).__name__}")
-        if self.method == "quasistatic" and self.contact != "sticky":
-            raise InputError("SolverConfig.method 'quasistatic' handles sticky contact only; use contact='sticky' or the explicit method")
+        if self.method in ("quasistatic", "auto") and self.contact != "sticky":
+            raise InputError(f"SolverConfig.method {self.method!r} handles sticky contact only; use contact='sticky' or the explicit method")
         if self.contact not in ("sticky", "sliding"):
             raise InputError(f"SolverConfig.contact must be 'sticky' or 'sliding', got {self.contact!r}")
         groups = self.bonded

@@ -52,7 +52,9 @@ class EstimateScores(Scores):
     steps); min_det_f (the smallest particle volume ratio: near 0, an element collapsed). With the quasi-static
     solver (``solver.method`` in the run's JSON) steps are Newton iterations, linear_iterations their
     conjugate-gradient iterations, body_motion_mm the last iteration's largest particle move and reason
-    ``settled`` or ``max_iterations``.
+    ``settled`` or ``max_iterations``. ``finished_by``: which solver ended the frame (``explicit``,
+    ``quasistatic``, or ``quasistatic+explicit`` when ``method="auto"`` went on explicitly; then steps are the
+    explicit steps and linear_iterations those of the quasi-static iterations before them).
     """
 
     steps: int
@@ -66,6 +68,7 @@ class EstimateScores(Scores):
     body_motion_mm: float = float("nan")
     min_det_f: float = float("nan")
     linear_iterations: int = 0
+    finished_by: str = "explicit"
 
 
 @dataclass(kw_only=True)

@@ -36,13 +36,15 @@ def format_table(out: RunResult) -> str:
             f"particles {sum(out.n_particles.values())} ({out.n_particles}), driven {out.n_driven}")
     est = out.estimate
     state = "converged" if est.converged else ("STALLED" if est.reason == "stalled" else "NOT converged")
-    if (out.solver or {}).get("method") == "quasistatic":
+    if getattr(est, "finished_by", "explicit") == "quasistatic":
         tail = (f"estimate (quasi-static): {state} ({est.reason}) in {est.steps} Newton iterations, {est.ms_per_step:.1f} ms each, "
                 f"RMS residual {est.rms_residual_mm:.3f} mm; "
                 + ("the whole model had settled" if est.settled else
                    f"the last iteration still moved a particle {est.body_motion_mm:.3f} mm: not yet an equilibrium"))
     else:
-        tail = (f"estimate: {state} ({est.reason}) in {est.steps} steps, {est.ms_per_step:.2f} ms/step, "
+        before = (f" after {est.linear_iterations} conjugate-gradient iterations of an unsettled quasi-static start"
+                  if getattr(est, "finished_by", "") == "quasistatic+explicit" else "")
+        tail = (f"estimate: {state} ({est.reason}) in {est.steps} steps{before}, {est.ms_per_step:.2f} ms/step, "
                 f"RMS residual {est.rms_residual_mm:.3f} mm; "
                 + ("the whole model had settled" if est.settled else
                    f"the model was still moving ({est.body_motion_mm:.2f} mm per 100 steps at the 99th percentile: "
