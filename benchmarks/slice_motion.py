@@ -4,6 +4,9 @@ beside ``propagate`` with the same slice motion, on the real samples.
     python benchmarks/slice_motion.py [--cases totalseg_mr,totalseg_ct] [--deformations 1,2,3,4,5,6] [--workers 2]
     python benchmarks/slice_motion.py --protocol paper --cases totalseg_mr --deformations 1,2,3,4,5,6,7,8 --conditions a
 
+``--registration itk,gauss-newton`` runs every ``registration*`` target kind with each slice registration backend
+in the same task (the table labels the kind with its backend).
+
 Conditions: ``a`` one mid-pancreas axial slice; ``sc`` a sagittal and a coronal slice through the middle of
 the pancreas (the Unity set-up). Prints one table per condition (means over cases x deformations) and
 writes every run to ``benchmarks/results/slice_motion_<protocol>.json``.
@@ -38,7 +41,7 @@ def mid_slices(prep, condition):
     return f"sagittal:{int(np.median(pan[:, 0])) + prep.offset[0]},coronal:{int(np.median(pan[:, 1])) + prep.offset[1]}"
 
 
-def task(name, deformation, protocol, conditions, kinds):
+def task(name, deformation, protocol, conditions, kinds, backends=("itk",)):
     warnings.simplefilter("ignore")
     cfg = CaseConfig(labels=os.path.join(DATA, name, "labels.nii.gz"), image=os.path.join(DATA, name, "image.nii.gz"), preset=name,
                      protocol=protocol, deformation=deformation, device="cpu",
@@ -48,14 +51,15 @@ def task(name, deformation, protocol, conditions, kinds):
     rows = []
     for cond in conditions:
         slices = mid_slices(prep, cond)
-        for n, (kind, drive) in enumerate(kinds):
-            c = replace(cfg, slices=slices, targets=kind, drive=drive, exclude_driven=True,
+        runs = [(kind, drive, b) for kind, drive in kinds for b in (backends if kind.startswith("registration") else ("itk",))]
+        for n, (kind, drive, backend) in enumerate(runs):
+            c = replace(cfg, slices=slices, targets=kind, drive=drive, exclude_driven=True, registration=backend,
                         baselines=cfg.baselines if n == 0 else ("propagate",))
             out = run_prepared(prep, gt, c)
             r = {k: v.to_json() for k, v in out.results.items()}
             rows.append({"case": name, "deformation": deformation, "condition": cond, "slices": slices, "targets": kind, "drive": drive,
-                         "results": r, "registration": out.registration, "target_in_plane_error_mm": out.target_in_plane_error_mm,
-                         "steps": out.estimate.steps})
+                         "backend": backend, "results": r, "registration": out.registration,
+                         "target_in_plane_error_mm": out.target_in_plane_error_mm, "steps": out.estimate.steps})
     return rows
 
 
@@ -72,14 +76,18 @@ def table(rows, cond):
              f"{len({(r['case'], r['deformation']) for r in rs})} runs",
              "| targets | drive | estimate | propagate (same slice motion) | estimate vs propagate | target in-plane error | steps |",
              "|---|---|---|---|---|---|---|"]
-    for kind, drive in KINDS:
-        sel = [r for r in rs if r["targets"] == kind and r["drive"] == drive]
+    for (kind, drive), backend in [(k, b) for k in KINDS for b in ("itk", "gauss-newton")]:
+        sel = [r for r in rs if r["targets"] == kind and r["drive"] == drive and r.get("backend", "itk") == backend]
         if not sel:
             continue
+        label = kind if backend == "itk" or not kind.startswith("registration") else f"{kind} (gauss-newton)"
         e = np.array([r["results"]["estimate"]["error_offslice_mm"] for r in sel])
         p = np.array([r["results"]["propagate"]["error_offslice_mm"] for r in sel])
         t = np.array([r["target_in_plane_error_mm"] for r in sel])
-        lines.append(f"| {kind} | {drive if kind != 'gt' else '3d'} | {e.mean():.2f} | {p.mean():.2f} | {100 * (e.mean() / p.mean() - 1):+.0f} % "
+        reg = [r["registration"] for r in sel if r.get("registration")]
+        ms = f", {1e3 * np.median([g['wall_s'] for g in reg]):.0f} ms a slice" if reg and "wall_s" in reg[0] else ""
+        med = f", registration median {np.median([g['median_error_mm'] for g in reg]):.2f} mm" if reg and "median_error_mm" in reg[0] else ""
+        lines.append(f"| {label}{med}{ms} | {drive if kind != 'gt' else '3d'} | {e.mean():.2f} | {p.mean():.2f} | {100 * (e.mean() / p.mean() - 1):+.0f} % "
                      f"({int(np.sum(e < p))} of {len(e)} better) | {np.nanmean(t):.2f} | {np.mean([r['steps'] for r in sel]):.0f} |")
     for k, v in base.items():
         lines.append(f"| {k} | | {np.mean(list(v.values())):.2f} | | | | |")
@@ -94,6 +102,7 @@ def main(argv=None):
     p.add_argument("--conditions", default="a,sc")
     p.add_argument("--kinds", default=None, help="comma-separated target:drive pairs (default: all)")
     p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--registration", default="itk", help="slice registration backends for the registration* kinds: itk, gauss-newton or both")
     p.add_argument("--name", default=None, help="raw results file name (default slice_motion_<protocol>)")
     a = p.parse_args(argv)
     cases = [c for c in a.cases.split(",") if os.path.exists(os.path.join(DATA, c, "labels.nii.gz"))]
@@ -101,12 +110,14 @@ def main(argv=None):
         print(f"skipping {c}: not in {DATA}")
     kinds = [tuple(k.split(":")) for k in a.kinds.split(",")] if a.kinds else KINDS
     rows = []
-    args = [(c, int(d), a.protocol, a.conditions.split(","), kinds) for c in cases for d in a.deformations.split(",")]
+    backends = tuple(a.registration.split(","))
+    args = [(c, int(d), a.protocol, a.conditions.split(","), kinds, backends) for c in cases for d in a.deformations.split(",")]
 
     def keep(rs):
         rows.extend(rs)
         print(f"{rs[0]['case']} def{rs[0]['deformation']}: " + ", ".join(
-            f"{r['condition']} {r['targets']}/{r['drive']} {r['results']['estimate']['error_offslice_mm']:.2f}" for r in rs), flush=True)
+            f"{r['condition']} {r['targets']}/{r['drive']}/{r['backend']} {r['results']['estimate']['error_offslice_mm']:.2f}" for r in rs),
+            flush=True)
 
     failed = run_tasks(task, args, keep, workers=a.workers)
     for cond in a.conditions.split(","):

@@ -86,6 +86,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    "(default: what images give), the organ-aware affines alone, an affine fitted to the GT (the paper's protocol), "
                    "GT 3D positions (upper bound), GT in-plane part (ceiling of 2D registration), one registered affine per slice, "
                    "or a registered B-spline field")
+    p.add_argument("--registration", default="itk", choices=["itk", "gauss-newton"],
+                   help="the slice registration's optimiser (registration targets): ITK's gradient descent or Gauss-Newton, "
+                   "the same correlation metric")
     p.add_argument("--drive", default="pinned", choices=["inplane", "pinned"],
                    help="inplane: a slice drives only its in-plane components; pinned: the through-plane coordinate too")
     p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
@@ -94,10 +97,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--wait-settled", action="store_true",
                    help="the settled mode: run each estimate on until the whole model has settled, not only the driven slice, with "
                    "adaptive (critical) damping and a PD drive (checked against the FEM reference; slower)")
-    p.add_argument("--solver", default="explicit", choices=["explicit", "quasistatic"],
-                   help="how the estimate's equilibrium is found: explicit MPM steps stopped by the paper's rule (default), or "
-                   "Newton / conjugate-gradient iterations to the settled equilibrium (sticky contact only; the ground truth "
-                   "stays explicit)")
+    p.add_argument("--solver", default="explicit", choices=["explicit", "quasistatic", "auto"],
+                   help="how the estimate's equilibrium is found: explicit MPM steps stopped by the paper's rule (default), "
+                   "Newton / conjugate-gradient iterations to the settled equilibrium, or auto: those iterations first and "
+                   "explicit steps from where they stopped when the frame has not settled after a few (sticky contact only; "
+                   "the ground truth stays explicit)")
     p.add_argument("--gt-wait-settled", action="store_true",
                    help="contact protocol: simulate the ground truth until its whole body has settled (an elastic equilibrium; slow)")
     p.add_argument("--contact", default="sticky", choices=["sticky", "sliding"],
@@ -178,9 +182,15 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--wait-settled", action="store_true",
                    help="the settled mode: run each estimate on until the whole model has settled, not only the driven slice, with "
                    "adaptive (critical) damping and a PD drive (checked against the FEM reference; slower)")
-    k.add_argument("--solver", default="explicit", choices=["explicit", "quasistatic"],
-                   help="how each frame's equilibrium is found: explicit MPM steps (default) or Newton / conjugate-gradient "
-                   "iterations to the settled equilibrium")
+    k.add_argument("--solver", default="auto", choices=["auto", "explicit", "quasistatic"],
+                   help="how each frame's equilibrium is found: auto (default): Newton / conjugate-gradient iterations to the "
+                   "settled equilibrium, going on with explicit MPM steps when a frame has not settled after a few; explicit "
+                   "MPM steps alone; or the Newton iterations alone")
+    k.add_argument("--registration", default="gauss-newton", choices=["gauss-newton", "itk"],
+                   help="the slice registration's optimiser: Gauss-Newton (default) or ITK's gradient descent (same correlation metric)")
+    k.add_argument("--linear-prior", type=float, default=10.0,
+                   help="Gauss-Newton registration: how strongly a frame's scale/shear/rotation is kept near the identity (whole "
+                   "slice) or the whole slice's (each organ); 0: none")
     k.add_argument("--threads", type=int, default=None, help="CPU threads an explicit step is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
     k.add_argument("--no-predict", action="store_true",
                    help="start each frame from the last estimate, not from the frame's per-organ motion applied to every particle")
@@ -263,6 +273,7 @@ def config_from_args(a):
     baselines = ("initial", "propagate") if a.no_volume_registration else ("initial", "propagate", "volume_registration")
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
                       organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets, drive=a.drive,
+                      registration=a.registration,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
                       solver=SolverConfig(contact=a.contact, friction=a.friction, method=a.solver, cpu_threads=a.threads))
@@ -406,7 +417,8 @@ def cmd_track(a) -> int:
     if not os.path.isdir(parent):
         raise InputError(f"output folder {parent} for --out does not exist")
     cfg = TrackerConfig(organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
-                        predict=not a.no_predict, wait_settled=a.wait_settled,
+                        predict=not a.no_predict, wait_settled=a.wait_settled, registration=a.registration,
+                        registration_linear_prior=a.linear_prior,
                         solver=SolverConfig(device=a.device, method=a.solver, cpu_threads=a.threads))
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
