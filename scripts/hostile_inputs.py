@@ -119,6 +119,12 @@ def cases(d):
         ("cfl 0 (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; SolverConfig(cfl=0)"], "error"),
         ("quasi-static with sliding contact", run + ["--solver", "quasistatic", "--contact", "sliding"], "error"),
         ("threads 0", run + ["--threads", "0"], "error"),
+        ("auto solver with sliding contact", run + ["--solver", "auto", "--contact", "sliding"], "error"),
+        ("unknown registration backend", run + ["--registration", "lbfgs"], "error"),
+        ("NaN linear prior (API)", ["python", "-c", "from warpmpm.gauss_newton import GaussNewtonConfig; "
+                                    "GaussNewtonConfig(linear_prior=float('nan'))"], "error"),
+        ("auto: 0 Newton iterations (API)", ["python", "-c", "from warpmpm.solver import QuasiStaticConfig; "
+                                             "QuasiStaticConfig(auto_newton_iterations=0)"], "error"),
         ("quasi-static: CG tolerance 2 (API)", ["python", "-c", "from warpmpm.solver import QuasiStaticConfig; "
                                                 "QuasiStaticConfig(cg_tolerance=2.0)"], "error"),
         ("NaN extra points (API)", ["python", "-c", "import numpy as np; from warpmpm.scenes import block_model; "

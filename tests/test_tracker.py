@@ -108,6 +108,19 @@ def test_bad_cine_folders_are_named(tmp_path, tiny_case):
         Tracker(tiny_case, read_cine(str(tmp_path)), TrackerConfig(solver=SolverConfig(device="cpu")))
 
 
+def test_bad_registration_settings_are_refused(series):
+    from warpmpm.images import load_case
+    from warpmpm.tracker import Tracker, TrackerConfig
+
+    case = load_case(os.path.join(series, "planning", "labels.nii.gz"), os.path.join(series, "planning", "image.nii.gz"), "amos")
+    frames = read_cine(os.path.join(series, "cine"))
+    with pytest.raises(InputError, match="registration must be one of"):
+        Tracker(case, frames, TrackerConfig(registration="lbfgs"))
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(InputError, match="--linear-prior"):
+            Tracker(case, frames, TrackerConfig(registration_linear_prior=bad))
+
+
 def test_dicom_and_nifti_frames_give_the_same_track(tmp_path):
     """The same series written both ways (DICOM: 16-bit, ordered by acquisition time) tracks alike."""
     import csv

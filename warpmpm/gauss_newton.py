@@ -66,6 +66,8 @@ class GaussNewtonConfig:
             raise InputError(f"GaussNewtonConfig.levels must be positive integers, got {self.levels}")
         if self.iterations < 1:
             raise InputError(f"GaussNewtonConfig.iterations must be >= 1, got {self.iterations}")
+        if not (isinstance(self.linear_prior, (int, float)) and np.isfinite(self.linear_prior) and self.linear_prior >= 0):
+            raise InputError(f"GaussNewtonConfig.linear_prior must be a finite number >= 0, got {self.linear_prior!r}")
         if self.domain not in ("captured", "stored"):
             raise InputError(f"GaussNewtonConfig.domain must be 'captured' or 'stored', got {self.domain!r}")
         if not self.tolerance_mm > 0:

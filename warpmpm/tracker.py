@@ -93,6 +93,9 @@ class Tracker:
         self.config, self.case, self.frames = cfg, case, frames
         if cfg.registration not in BACKENDS:
             raise InputError(f"TrackerConfig.registration must be one of {', '.join(BACKENDS)}, got {cfg.registration!r}")
+        lp = cfg.registration_linear_prior
+        if not (isinstance(lp, (int, float)) and not isinstance(lp, bool) and np.isfinite(lp) and lp >= 0):
+            raise InputError(f"--linear-prior (TrackerConfig.registration_linear_prior) must be a finite number >= 0, got {lp!r}")
         if case.image is None:
             raise InputError("tracking needs the planning image (--image): the first frame of each plane is registered to it")
         present = [o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o])]
