@@ -565,7 +565,8 @@ class SliceDrivenEstimator:
         t0 = time.perf_counter()
         self.quasistatic.set_drive(self.driven, targets_mm, axes)
         qc = self.quasistatic.config
-        res = self.quasistatic.solve(self.state, max_iterations=qc.auto_newton_iterations if trial else None, stop_at_cg_cap=trial)
+        res = self.quasistatic.solve(self.state, max_iterations=qc.auto_newton_iterations if trial else None, stop_at_cg_cap=trial,
+                                     max_cg_iterations=qc.auto_max_cg_iterations if trial else None)
         wall = time.perf_counter() - t0
         if res.settled:  # the PID's integral and feed-forward belong to an explicit frame's equilibrium; none holds this one
             self._integral.zero_()

@@ -609,10 +609,12 @@ class QuasiStaticSolver:
         self._driven = driven
         self._driven_wp = wp.array(driven.astype(np.int32), dtype=int, device=m.device)
 
-    def solve(self, state: State, max_iterations: int | None = None, stop_at_cg_cap: bool = False) -> QuasiStaticResult:
+    def solve(self, state: State, max_iterations: int | None = None, stop_at_cg_cap: bool = False,
+              max_cg_iterations: int | None = None) -> QuasiStaticResult:
         """Newton iterations from ``state`` until it has settled (or ``max_iterations``, default
         ``max_newton_iterations``); in place. ``stop_at_cg_cap``: also stop (not settled) after the first iteration
-        whose linear solve ran into ``max_cg_iterations`` (``SolverConfig(method="auto")`` then goes on explicitly)."""
+        whose linear solve ran into its cap (``max_cg_iterations``, default the config's): ``SolverConfig(method="auto")``
+        then goes on explicitly."""
         cfg, m, d = self.config, self.model, self.model.device
         self._state = state
         state.v.zero_()
@@ -638,10 +640,11 @@ class QuasiStaticSolver:
             # Jacobi alone first: a frame that starts near its equilibrium (a predicted tracker frame) is solved before
             # the coarse level would have been built (one operator application per mode)
             self._coarse_nodes = None
-            n_cg, done = self._conjugate_gradient(state, k_reg, COARSE_AFTER if cfg.coarse_modes == "rigid" else cfg.max_cg_iterations)
-            if not done and cfg.coarse_modes == "rigid":
+            cap = cfg.max_cg_iterations if max_cg_iterations is None else int(max_cg_iterations)
+            n_cg, done = self._conjugate_gradient(state, k_reg, min(COARSE_AFTER, cap) if cfg.coarse_modes == "rigid" else cap)
+            if not done and cfg.coarse_modes == "rigid" and cap > COARSE_AFTER:
                 self._build_coarse(state, k_reg)
-                more, done = self._conjugate_gradient(state, k_reg, cfg.max_cg_iterations)
+                more, done = self._conjugate_gradient(state, k_reg, cap if max_cg_iterations is None else cap - COARSE_AFTER)
                 n_cg += more
             capped = not done
             cg_total += n_cg

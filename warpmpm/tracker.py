@@ -32,7 +32,7 @@ from .model import ParticleModel, build_model
 from .registration import BACKENDS, register_slice_organs
 from .solver import SolverConfig
 
-TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "converged", "reason", "wall_s", "rms_residual_mm", "registration_ms",
+TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "reason", "wall_s", "rms_residual_mm", "registration_ms",
                 "pancreas_x_mm", "pancreas_y_mm", "pancreas_z_mm", "pancreas_shift_mm"] + [f"max_{o}_mm" for o in ORGANS]
 
 
@@ -203,7 +203,7 @@ class Tracker:
         c = res.positions_mm[pan].mean(0)
         disp = np.linalg.norm(res.positions_mm - m.positions_mm, axis=1)
         row = {"frame": n, "time_s": round(frame.time_s, 4), "plane": frame.plane, "file": os.path.basename(frame.path),
-               "solver": res.method, "steps": res.steps, "converged": res.converged, "reason": res.reason, "wall_s": res.wall_s,
+               "solver": res.method, "steps": res.steps, "linear_iterations": res.linear_iterations, "converged": res.converged, "reason": res.reason, "wall_s": res.wall_s,
                "rms_residual_mm": res.final_rms_mm, "registration_ms": 1e3 * reg_s,
                "pancreas_x_mm": c[0], "pancreas_y_mm": c[1], "pancreas_z_mm": c[2],
                "pancreas_shift_mm": float(np.linalg.norm(c - m.positions_mm[pan].mean(0)))}
