@@ -246,6 +246,9 @@ def _solve(stored: sitk.Image, captured: sitk.Image, mask: sitk.Image, initial, 
             vals, inside = _bilinear(stack, (xw - o_c) / s_c)
             n_in = int(inside.sum())
             if n_in < cfg.min_points:
+                if f != cfg.levels[-1]:  # a coarse level samples every f-th pixel: leave it to the finer ones
+                    stop = f"level {f} skipped: only {n_in} template points overlap the captured slice"
+                    break
                 return GaussNewtonResult(np.eye(2), np.zeros(2), float("nan"), total,
                                          f"level {f}: only {n_in} template points overlap the captured slice", False)
             if n_in < len(inside):
