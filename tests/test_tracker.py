@@ -121,6 +121,38 @@ def test_bad_registration_settings_are_refused(series):
             Tracker(case, frames, TrackerConfig(registration_linear_prior=bad))
 
 
+def test_a_frame_whose_registration_fails_is_flagged_and_the_series_goes_on(series, tmp_path, monkeypatch):
+    """A degenerate registration on one frame (ITK's optimiser did this on one of five MR series) used to stop the
+    whole track. Now the frame is flagged in track.csv (not converged, the reason), the estimate holds, and the plane's
+    next frame is registered against its last good frame."""
+    import warpmpm.tracker as tracker_module
+    from warpmpm.errors import InputWarning
+    from warpmpm.images import load_case
+    from warpmpm.tracker import Tracker, TrackerConfig
+
+    case = load_case(os.path.join(series, "planning", "labels.nii.gz"), os.path.join(series, "planning", "image.nii.gz"), "amos")
+    frames = read_cine(os.path.join(series, "cine"))
+    real = tracker_module.register_slice_organs
+    calls = []
+
+    def flaky(stored, captured, *args, **kw):
+        calls.append(sitk.GetArrayFromImage(stored))
+        whole, organs = real(stored, captured, *args, **kw)
+        if len(calls) == 3:  # the third frame (plane 0's second)
+            whole.ok, whole.stop = False, "a test's degenerate transform"
+        return whole, organs
+
+    monkeypatch.setattr(tracker_module, "register_slice_organs", flaky)
+    tr = Tracker(case, frames, TrackerConfig())
+    with pytest.warns(InputWarning, match="registration failed"):
+        rows = tr.run(str(tmp_path / "out"))
+    assert len(rows) == 3 and rows[2]["converged"] is False and rows[2]["reason"].startswith("registration failed")
+    assert rows[2]["solver"] == "none" and rows[2]["steps"] == 0
+    assert tr.last_frame[0] is frames[0]  # plane 0's next frame would be registered against frame 0
+    est = np.load(tmp_path / "out" / "particles.npz")["estimate_mm"]
+    np.testing.assert_array_equal(est[2], est[1])  # the estimate held
+
+
 def test_dicom_and_nifti_frames_give_the_same_track(tmp_path):
     """The same series written both ways (DICOM: 16-bit, ordered by acquisition time) tracks alike."""
     import csv

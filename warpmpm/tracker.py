@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,7 +26,7 @@ import SimpleITK as sitk
 
 from .cine import CineFrame
 from .driving import ConvergenceConfig, SliceDrivenEstimator
-from .errors import InputError
+from .errors import InputError, InputWarning
 from .groundtruth import particle_label_map
 from .images import ORGANS, Case
 from .model import ParticleModel, build_model
@@ -165,9 +166,9 @@ class Tracker:
         whole, per_organ = register_slice_organs(stored, captured, frame.centre_mm, mask, own, backend=self.config.registration,
                                                  linear_prior=self.config.registration_linear_prior)
         reg_s = time.perf_counter() - t_reg  # the whole call: refused organs and the fit checks cost time too
-        if not whole.ok:
-            raise InputError(f"cine frame {frame.path}: the slice registration gave a degenerate transform ({whole.stop})")
         x = self.estimator.positions_mm()
+        if not whole.ok:
+            return self._skipped(n, frame, x, reg_s, whole.stop)
         organ_of = np.asarray(m.organs)[m.organ_index]
 
         def observed(now, then):
@@ -199,17 +200,32 @@ class Tracker:
         self.plane_positions[frame.plane] = res.positions_mm
         self.plane_propagated[frame.plane] = self.propagated.copy()
         self.plane_labels[frame.plane] = self.labels_now
+        return TrackedFrame(res.positions_mm, self._row(n, frame, res.positions_mm, reg_s, solver=res.method, steps=res.steps,
+                                                        linear_iterations=res.linear_iterations, converged=res.converged,
+                                                        reason=res.reason, wall_s=res.wall_s, rms_residual_mm=res.final_rms_mm))
+
+    def _skipped(self, n: int, frame: CineFrame, x: np.ndarray, reg_s: float, why: str) -> TrackedFrame:
+        """A frame whose slice registration failed: the estimate holds where it was (the frame is flagged in
+        ``track.csv``, not hidden), and the plane's next frame is registered against its last good one, so the motion
+        missed here is measured there."""
+        warnings.warn(f"cine frame {frame.path}: the slice registration failed ({why}); the estimate holds the last frame's "
+                      "state and the plane's next frame is registered against its last good frame", InputWarning, stacklevel=3)
+        return TrackedFrame(x.copy(), self._row(n, frame, x, reg_s, solver="none", steps=0, linear_iterations=0, converged=False,
+                                                reason=f"registration failed: {why}", wall_s=0.0, rms_residual_mm=float("nan")))
+
+    def _row(self, n: int, frame: CineFrame, positions_mm: np.ndarray, reg_s: float, **solve) -> dict:
+        """A frame's ``track.csv`` row: what the solve did (``solve``), the registration's time, the pancreas centroid
+        and its shift from planning, and each organ's largest displacement."""
+        m = self.model
         pan = m.organ_slice("pancreas")
-        c = res.positions_mm[pan].mean(0)
-        disp = np.linalg.norm(res.positions_mm - m.positions_mm, axis=1)
-        row = {"frame": n, "time_s": round(frame.time_s, 4), "plane": frame.plane, "file": os.path.basename(frame.path),
-               "solver": res.method, "steps": res.steps, "linear_iterations": res.linear_iterations, "converged": res.converged, "reason": res.reason, "wall_s": res.wall_s,
-               "rms_residual_mm": res.final_rms_mm, "registration_ms": 1e3 * reg_s,
-               "pancreas_x_mm": c[0], "pancreas_y_mm": c[1], "pancreas_z_mm": c[2],
+        c = positions_mm[pan].mean(0)
+        disp = np.linalg.norm(positions_mm - m.positions_mm, axis=1)
+        row = {"frame": n, "time_s": round(frame.time_s, 4), "plane": frame.plane, "file": os.path.basename(frame.path), **solve,
+               "registration_ms": 1e3 * reg_s, "pancreas_x_mm": c[0], "pancreas_y_mm": c[1], "pancreas_z_mm": c[2],
                "pancreas_shift_mm": float(np.linalg.norm(c - m.positions_mm[pan].mean(0)))}
         for o in ORGANS:
             row[f"max_{o}_mm"] = float(disp[m.organ_slice(o)].max()) if o in m.organs else ""
-        return TrackedFrame(res.positions_mm, row)
+        return row
 
     def run(self, out_dir: str, progress=None, recorder=None) -> list[dict]:
         """Track every frame, writing ``out_dir`` (module docstring); returns the CSV rows. ``recorder``
