@@ -1,31 +1,39 @@
 """Fast 2D affine slice registration: Gauss-Newton on normalised intensities (numpy).
 
-The stored slice (t-1) is the template ``T``, sampled at its mask's pixels ``x``; the captured slice (t) is
-``I``. The forward in-plane motion ``W(x) = A x + t`` (the registration module's convention, in the slices'
-physical mm) minimises
+The registration module's convention: the forward in-plane motion ``W(x) = A x + t`` takes the stored slice (t-1)
+onto the captured slice (t), in the slices' physical mm, and the metric is restricted to a mask on the stored
+slice. By default (``domain="captured"``, as ITK's registration samples its fixed image) the sample points are
+the captured slice's pixels ``y`` under the mask carried onto it by the initial motion, the stored slice ``S`` is
+interpolated at the inverse motion ``V(y) = W^-1(y)``, and ``V`` minimises
 
-    E(W) = sum_x [ I~(W(x)) - T~(x) ]^2,
+    E(V) = sum_y [ S~(V(y)) - I~(y) ]^2,
 
 where ``~`` standardises the intensities over the sampled points (zero mean, unit variance). That is
 ``2 N (1 - NCC)``, so the minimum is the normalised cross-correlation's maximum, the metric of
-:func:`warpmpm.registration.register_slices`, robust to the intensity scaling of MR. Each iteration is a
-forward-additive Gauss-Newton step: the captured slice and its gradient are sampled at ``W(x)``, the
-Jacobian of the standardised samples is ``J = (G - mean G - I~ mean(I~ G)) / sd(I)`` with
-``G = grad I . dW/dp`` (the mean and the spread move with the warp too), and ``dp = -(J^T J)^-1 J^T e``
-solves a 6 x 6 system. (The inverse-compositional variant, which computes ``J`` once from the template, was
-tried: 30 % faster, but its fixed point is the correlation's maximum only when the residual is zero; on the
-MR sample it stopped 0.26 mm RMS from a known affine against 0.17 here.) A pyramid level smooths both slices
-by a Gaussian of ``(f - 1) / 2`` pixels, ``f`` the level's factor, and samples every ``f``-th template pixel.
+:func:`warpmpm.registration.register_slices`, robust to the intensity scaling of MR; ``W = V^-1`` is returned.
+Each iteration is a forward-additive Gauss-Newton step: the interpolated slice and its gradient (central
+differences) are sampled at ``V(y)``, the Jacobian of the standardised samples is
+``J = (G - mean G - S~ mean(S~ G)) / sd(S)`` with ``G = grad S . dV/dp`` (the mean and the spread move with the
+warp too), and ``dp = -(J^T J + prior)^-1 (J^T e + prior)`` solves a 6 x 6 system. A pyramid level smooths both
+slices by a Gaussian of ``(f - 1) / 2`` pixels, ``f`` the level's factor, and samples every ``f``-th pixel.
+
+What was tried (``benchmarks/README.md``): the inverse-compositional variant (``J`` once from the template: 30 %
+faster, but its fixed point is the correlation's maximum only at zero residual); sampling the stored slice's own
+pixels (``domain="stored"``: on the MR cine series it left a constant 0.02-0.05 mm a frame that added up along a
+series); the exact gradient of the bilinear interpolant (its kinks at pixel edges kept noisy frames cycling and
+doubled the frame-to-frame drift).
 
 Why it exists: ITK's registration framework (a regular-step gradient descent over the same metric) spends
 most of a cine frame's organ-aware registration in fixed costs and 20-60 first-order iterations on a few
-thousand pixels; Gauss-Newton converges in a handful of iterations of a few numpy passes over those pixels
-(``benchmarks/registration_speed.py`` has the comparison, README the figures).
+thousand pixels; Gauss-Newton converges in a handful of iterations of a few numpy passes over those pixels:
+3.4-4.3x faster on one slice, 3.5-4x on a cine frame's organ-aware chain (``benchmarks/registration_speed.py``,
+``benchmarks/track_series.py``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import SimpleITK as sitk
@@ -40,12 +48,13 @@ class GaussNewtonConfig:
     levels: tuple[int, ...] = (4, 2, 1)
     """Pyramid factors, coarse to fine: smoothing of ``(f - 1) / 2`` pixels and every ``f``-th template pixel."""
     iterations: int = 30
-    """Most Gauss-Newton iterations per level (measured: 3-8 are used on the cine frames)."""
+    """Most Gauss-Newton iterations per level (measured: about 20 over the three levels of a cine frame's
+    registration)."""
     tolerance_mm: float = 0.01
     """A level ends when an update moves no corner of the template's bounding box by more than this (mm): a
-    fiftieth of a 2 mm cine pixel. (1e-3 mm left a third of the cine frames' registrations cycling on the noise
-    until the iteration cap, three times the time, for the same error.)"""
-    domain: str = "captured"
+    fiftieth of a 2 mm cine pixel. (1e-3 mm, tried on the first version, left a third of the cine frames'
+    registrations cycling on the noise until the iteration cap, three times the time, for the same error.)"""
+    domain: Literal["captured", "stored"] = "captured"
     """Whose pixels are the sample points: ``"captured"`` (the captured slice's pixels whose inverse-mapped position
     falls in the mask, the stored slice interpolated, as ITK's registration samples its fixed image: the inverse
     motion is solved and inverted) or ``"stored"`` (the mask's own pixels, the captured slice interpolated)."""
@@ -55,8 +64,8 @@ class GaussNewtonConfig:
     translation well and its scale and shear poorly, and the poorly fixed part is what carries the motion to the
     organ's particles away from the slice. 0: none."""
     min_points: int = 30
-    """Fewest template pixels (at a level) that overlap the captured slice; fewer ends the registration as
-    not ok (the slice does not overlap the model's organs)."""
+    """Fewest sample points that must overlap the other slice: fewer at a coarse level leaves that level to the
+    finer ones; fewer at the finest ends the registration as not ok (the slice does not overlap the organs)."""
     min_gradient: float = 1e-6
     """Smallest pivot of the Gauss-Newton matrix (relative to its largest): below it the template has no
     structure in some direction (a flat footprint) and the registration is not ok."""
@@ -247,10 +256,10 @@ def _solve(stored: sitk.Image, captured: sitk.Image, mask: sitk.Image, initial, 
             n_in = int(inside.sum())
             if n_in < cfg.min_points:
                 if f != cfg.levels[-1]:  # a coarse level samples every f-th pixel: leave it to the finer ones
-                    stop = f"level {f} skipped: only {n_in} template points overlap the captured slice"
+                    stop = f"level {f} skipped: only {n_in} sample points overlap the other slice"
                     break
                 return GaussNewtonResult(np.eye(2), np.zeros(2), float("nan"), total,
-                                         f"level {f}: only {n_in} template points overlap the captured slice", False)
+                                         f"level {f}: only {n_in} sample points overlap the other slice", False)
             if n_in < len(inside):
                 vals, yy, tt = vals[inside], y[inside], tv[inside]
             else:
@@ -259,7 +268,7 @@ def _solve(stored: sitk.Image, captured: sitk.Image, mask: sitk.Image, initial, 
             isd = float(iv.std())
             if isd <= 1e-12:
                 return GaussNewtonResult(np.eye(2), np.zeros(2), float("nan"), total,
-                                         f"level {f}: the captured slice is constant where the template lands", False)
+                                         f"level {f}: the interpolated slice is constant where the sample points land", False)
             iz = (iv - iv.mean()) / isd
             e = iz - _standardise(tt)
             # derivative of the standardised captured values: the warp's, less what the mean and the spread absorb
@@ -273,7 +282,7 @@ def _solve(stored: sitk.Image, captured: sitk.Image, mask: sitk.Image, initial, 
             try:
                 dp = -np.linalg.solve(H, g)
             except np.linalg.LinAlgError:
-                ok, stop = False, f"level {f}: the overlapping template points leave the update undetermined"
+                ok, stop = False, f"level {f}: the overlapping sample points leave the update undetermined"
                 break
             dM = np.array([[dp[0], dp[1], dp[4]], [dp[2], dp[3], dp[5]]])
             move = np.abs(corners @ dM[:, :2].T + dM[:, 2]).max() * L
