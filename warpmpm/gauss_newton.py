@@ -26,7 +26,7 @@ doubled the frame-to-frame drift).
 Why it exists: ITK's registration framework (a regular-step gradient descent over the same metric) spends
 most of a cine frame's organ-aware registration in fixed costs and 20-60 first-order iterations on a few
 thousand pixels; Gauss-Newton converges in a handful of iterations of a few numpy passes over those pixels:
-3.4-4.3x faster on one slice, 3.5-4x on a cine frame's organ-aware chain (``benchmarks/registration_speed.py``,
+3.5-4.9x faster on one slice, 3.3-4.3x on a cine frame's organ-aware chain (``benchmarks/registration_speed.py``,
 ``benchmarks/track_series.py``).
 """
 
