@@ -141,6 +141,23 @@ def _write_dicom_frame(frame: sitk.Image, path: str, k: int, t: float, thickness
     w.Execute(out)
 
 
+def slab_average(volume: np.ndarray, np_axis: int, k: int, thickness_voxels: float) -> np.ndarray:
+    """``volume`` averaged along ``np_axis`` over a box ``thickness_voxels`` wide centred on index ``k`` (a
+    rectangular slice profile): each voxel weighs by the share of it inside the box, so a 6 mm slice on a 3 mm
+    grid is half the centre voxel and a quarter of each neighbour (before, whole voxels were averaged and the
+    rounding made it the centre voxel alone: 3 mm). Voxels beyond the volume's edge are left out (the weights
+    renormalised). Returns the average with ``np_axis`` kept, one voxel thick."""
+    half = thickness_voxels / 2.0
+    lo, hi = int(math.floor(k - half + 0.5)), int(math.ceil(k + half - 0.5))
+    js = np.arange(max(lo, 0), min(hi, volume.shape[np_axis] - 1) + 1)
+    w = np.clip(np.minimum(js + 0.5, k + half) - np.maximum(js - 0.5, k - half), 0.0, None)
+    w = w / w.sum()
+    part = np.take(volume, js, axis=np_axis).astype(np.float64)
+    shape = [1, 1, 1]
+    shape[np_axis] = len(js)
+    return (part * w.reshape(shape)).sum(axis=np_axis, keepdims=True).astype(np.float32)
+
+
 def _frame_image(volume: np.ndarray, case: Case, orientation: str, through_mm: np.ndarray, thickness_mm: float, noise: float,
                  rng, pixel_mm: float | None = None) -> sitk.Image:
     """The plane of ``orientation`` through ``through_mm``, averaged over ``thickness_mm``, one voxel thick,
@@ -149,14 +166,9 @@ def _frame_image(volume: np.ndarray, case: Case, orientation: str, through_mm: n
     g = case.geometry
     a = orientation_image_axis(g, orientation)
     k = int(np.rint(g.world_to_index(through_mm[None, :])[0][a]))
-    half = max(0, int(round(thickness_mm / g.spacing_mm[a] / 2 - 0.5)))
-    lo, hi = max(0, k - half), min(g.size[a], k + half + 1)
-    np_axis = 2 - a
-    sl = [slice(None)] * 3
-    sl[np_axis] = slice(lo, hi)
-    plane = volume[tuple(sl)].mean(axis=np_axis, keepdims=True).astype(np.float32)
+    plane = slab_average(volume, 2 - a, k, thickness_mm / g.spacing_mm[a])
     start = [0, 0, 0]
-    start[a] = (lo + hi - 1) / 2.0
+    start[a] = k
     origin = g.index_to_world(np.asarray(start, dtype=np.float64)[None, :])[0]
     spacing = list(g.spacing_mm)
     spacing[a] = float(thickness_mm)
