@@ -27,6 +27,7 @@ from .driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator
 from .errors import InputError
 from .images import Case
 from .model import Material, ParticleModel, voxelize
+from .rendering import warp_volume
 from .slices import InPlaneAffine, in_plane_axes
 from .solver import SolverConfig
 
@@ -247,42 +248,6 @@ def contact_ground_truth(model: ParticleModel, *, seed: int = 0, perturb: bool =
 
 def warp_image(case: Case, model: ParticleModel, gt_positions_mm: np.ndarray, sigma_mm: float = 4.0,
                far_sigma_mm: float = 25.0) -> np.ndarray:
-    """The planning image warped by the GT particle motion (z, y, x).
-
-    A backward displacement field is scattered from the particles at their GT positions and filled
-    by normalised Gaussian smoothing at two scales: ``sigma_mm`` near the organs, blended smoothly
-    into a ``far_sigma_mm`` extrapolation elsewhere, so the tissue around the organs moves with
-    them (the paper deforms whole slices) instead of tearing at the organ boundaries.
-    """
-    if case.image is None:
-        raise InputError(f"case {case.name} has no intensity image to warp")
-    g = case.geometry
-    u = gt_positions_mm - model.positions_mm
-    ijk = np.rint(g.world_to_index(gt_positions_mm)).astype(np.int64)
-    inside = np.all((ijk >= 0) & (ijk < np.asarray(g.size)), axis=1)
-    ijk, u = ijk[inside], u[inside]
-    shape = g.size[::-1]
-    num = np.zeros(shape + (3,), dtype=np.float64)
-    den = np.zeros(shape, dtype=np.float64)
-    np.add.at(num, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), -u)
-    np.add.at(den, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), 1.0)
-
-    def smooth(a, sigma):
-        im = g.apply_to(sitk.GetImageFromArray(a.astype(np.float32)))
-        return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(im, sigma)).astype(np.float64)
-
-    def fill(sigma):
-        d = smooth(den, sigma)
-        f = np.stack([smooth(num[..., c], sigma) for c in range(3)], axis=-1)
-        return f / np.maximum(d, 1e-9)[..., None], d
-
-    near, den_near = fill(sigma_mm)
-    far, _ = fill(far_sigma_mm)
-    weight = np.clip(den_near / max(den_near.max(), 1e-12) * 4.0, 0.0, 1.0)[..., None]
-    field_ = weight * near + (1.0 - weight) * far
-    disp = sitk.GetImageFromArray(field_.astype(np.float64), isVector=True)
-    g.apply_to(disp)
-    tx = sitk.DisplacementFieldTransform(disp)
-    moving = case.intensity_image()
-    out = sitk.Resample(moving, moving, tx, sitk.sitkLinear, 0.0)
-    return sitk.GetArrayFromImage(out).astype(np.float32)
+    """The planning image warped by the GT particle motion (z, y, x): :func:`warpmpm.rendering.warp_volume`
+    (a backward field filled at ``sigma_mm`` near the organs and ``far_sigma_mm`` elsewhere)."""
+    return warp_volume(case, model.positions_mm, gt_positions_mm, sigma_mm, far_sigma_mm)
