@@ -191,6 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--linear-prior", type=float, default=10.0,
                    help="Gauss-Newton registration: how strongly a frame's scale/shear/rotation is kept near the identity (whole "
                    "slice) or the whole slice's (each organ); 0: none")
+    k.add_argument("--reference", default="estimate", choices=["estimate", "previous-frame"],
+                   help="what each frame is registered against: the current estimate rendered on the frame's plane (default; "
+                   "registration errors do not add up) or the plane's last frame (the first: the planning image)")
     k.add_argument("--threads", type=int, default=None, help="CPU threads an explicit step is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
     k.add_argument("--no-predict", action="store_true",
                    help="start each frame from the last estimate, not from the frame's per-organ motion applied to every particle")
@@ -418,7 +421,7 @@ def cmd_track(a) -> int:
         raise InputError(f"output folder {parent} for --out does not exist")
     cfg = TrackerConfig(organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
                         predict=not a.no_predict, wait_settled=a.wait_settled, registration=a.registration,
-                        registration_linear_prior=a.linear_prior,
+                        registration_linear_prior=a.linear_prior, reference=a.reference,
                         solver=SolverConfig(device=a.device, method=a.solver, cpu_threads=a.threads))
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
