@@ -4,7 +4,9 @@ A state of the particle model (positions, mm) moves the planning image: each vox
 found where the tissue now at it came from. The backward displacement ``planning - now`` is scattered from
 the particles at their current positions and filled by normalised Gaussian smoothing at two scales:
 ``sigma_mm`` near the organs, blended into a ``far_sigma_mm`` extrapolation elsewhere, so the tissue around
-the organs moves with them instead of tearing at their boundaries (the paper deforms whole slices).
+the organs moves with them instead of tearing at their boundaries (the paper deforms whole slices); beyond the
+extrapolation's reach (where its weights are lost in the filter's error) the tissue takes the particles' mean
+displacement.
 
 :func:`warp_volume` warps the whole volume (the ground truths' captured images). :func:`render_plane` renders
 only what a cine frame images: the field is built on the slab of the planning grid around the frame's plane
@@ -49,14 +51,19 @@ def backward_displacement(geometry: Geometry, planning_mm: np.ndarray, positions
     np.add.at(acc, (ijk[:, 2], ijk[:, 1], ijk[:, 0]), np.hstack([np.ones((len(u), 1)), -u]))
     stacked = geometry.apply_to(sitk.GetImageFromArray(acc.astype(np.float32), isVector=True))
 
+    mean_u = acc[..., 1:].sum(axis=(0, 1, 2)) / max(len(u), 1)  # the particles' mean backward displacement
+
     def fill(sigma):
         """The normalised fill at ``sigma`` and the smoothed count (one smoothing of all four components). Where
         the smoothed count is below 1e-3 of its peak (some 3.7 sigma from every particle) the recursive filter's
-        round-off is of the order of the count itself and the ratio would be noise (up to 1e6 mm measured on a thin
-        slab): the fill there tends to zero (the tissue stays) instead."""
+        error is of the order of the count itself and the ratio is noise (measured: up to 1e6 mm on 5 % of the
+        phantom's voxels and 27 % of the MR sample's for a uniform translation, where the answer is the
+        translation everywhere): the fill there is the particles' mean displacement instead."""
         sm = sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(stacked, sigma)).astype(np.float64)
-        floor = max(1e-3 * float(sm[..., 0].max()), 1e-9)
-        return sm[..., 1:] / np.maximum(sm[..., 0], floor)[..., None], sm[..., 0]
+        count = sm[..., 0]
+        valid = count > 1e-3 * max(float(count.max()), 1e-12)
+        out = np.where(valid[..., None], sm[..., 1:] / np.where(valid, count, 1.0)[..., None], mean_u)
+        return out, count
 
     near, den_near = fill(sigma_mm)
     far, _ = fill(far_sigma_mm)
