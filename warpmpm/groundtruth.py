@@ -21,13 +21,12 @@ import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import SimpleITK as sitk
 
 from .driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator
 from .errors import InputError
 from .images import Case
-from .model import Material, ParticleModel, voxelize
-from .rendering import warp_volume
+from .model import Material, ParticleModel
+from .rendering import particle_label_map, warp_volume  # noqa: F401  (particle_label_map: re-exported)
 from .slices import InPlaneAffine, in_plane_axes
 from .solver import SolverConfig
 
@@ -85,26 +84,6 @@ class GroundTruth:
     def label_map(self, label_values: dict[str, int]) -> np.ndarray:
         """Deformed label map at the GT state on the planning grid, (z, y, x), with ``label_values``."""
         return particle_label_map(self.model, self.positions_mm, label_values)
-
-
-def particle_label_map(model: ParticleModel, positions_mm: np.ndarray, label_values: dict[str, int]) -> np.ndarray:
-    """The label map (z, y, x) on the planning grid of particles at ``positions_mm`` (model order).
-
-    Each organ is voxelised on the grid the particles were laid on (:attr:`ParticleModel.particle_grid`),
-    stomach first and pancreas last as the phantom's labels are drawn, then resampled onto the planning
-    grid (nearest neighbour) when that grid is another (an isotropic lattice of a thick-slice scan).
-    """
-    g = model.particle_grid
-    out = np.zeros(g.size[::-1], dtype=np.int32)
-    for organ in ("stomach", "left_kidney", "duodenum", "pancreas"):
-        if organ in model.organs:
-            out[voxelize(positions_mm, g, model.organ_slice(organ), model.sampling_step)] = label_values[organ]
-    if model.lattice is None:
-        return out
-    img = model.lattice.apply_to(sitk.GetImageFromArray(out))
-    ref = sitk.Image([int(v) for v in model.geometry.size], sitk.sitkInt32)
-    model.geometry.apply_to(ref)
-    return sitk.GetArrayFromImage(sitk.Resample(img, ref, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkInt32))
 
 
 #: Courant number of the ground-truth simulations. Driving EVERY particle at the estimator's CFL 0.5

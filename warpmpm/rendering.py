@@ -28,6 +28,7 @@ import SimpleITK as sitk
 
 from .errors import InputError
 from .images import Case, Geometry
+from .model import ParticleModel, voxelize
 
 
 def _check_sigmas(sigma_mm: float, far_sigma_mm: float) -> None:
@@ -77,8 +78,14 @@ def warp_volume(case: Case, planning_mm: np.ndarray, positions_mm: np.ndarray, s
     """The planning image warped by the particle motion ``planning_mm -> positions_mm``, as (z, y, x) float32."""
     if case.image is None:
         raise InputError(f"case {case.name} has no intensity image to warp")
-    tx = sitk.DisplacementFieldTransform(backward_displacement(case.geometry, planning_mm, positions_mm, sigma_mm, far_sigma_mm))
-    moving = case.intensity_image()
+    return warp_array(case.image, case.geometry, planning_mm, positions_mm, sigma_mm, far_sigma_mm)
+
+
+def warp_array(volume: np.ndarray, geometry: Geometry, planning_mm: np.ndarray, positions_mm: np.ndarray, sigma_mm: float = 4.0,
+               far_sigma_mm: float = 25.0) -> np.ndarray:
+    """:func:`warp_volume` of a (z, y, x) ``volume`` on ``geometry``."""
+    tx = sitk.DisplacementFieldTransform(backward_displacement(geometry, planning_mm, positions_mm, sigma_mm, far_sigma_mm))
+    moving = geometry.apply_to(sitk.GetImageFromArray(np.asarray(volume, dtype=np.float32)))
     return sitk.GetArrayFromImage(sitk.Resample(moving, moving, tx, sitk.sitkLinear, 0.0)).astype(np.float32)
 
 
@@ -136,3 +143,23 @@ def render_plane(case: Case, planning_mm: np.ndarray, positions_mm: np.ndarray, 
     out = sitk.GetImageFromArray((acc / n).astype(np.float32))
     out.CopyInformation(plane_image)
     return out
+
+
+def particle_label_map(model: ParticleModel, positions_mm: np.ndarray, label_values: dict[str, int]) -> np.ndarray:
+    """The label map (z, y, x) on the planning grid of particles at ``positions_mm`` (model order).
+
+    Each organ is voxelised on the grid the particles were laid on (:attr:`ParticleModel.particle_grid`),
+    stomach first and pancreas last as the phantom's labels are drawn, then resampled onto the planning
+    grid (nearest neighbour) when that grid is another (an isotropic lattice of a thick-slice scan).
+    """
+    g = model.particle_grid
+    out = np.zeros(g.size[::-1], dtype=np.int32)
+    for organ in ("stomach", "left_kidney", "duodenum", "pancreas"):
+        if organ in model.organs:
+            out[voxelize(positions_mm, g, model.organ_slice(organ), model.sampling_step)] = label_values[organ]
+    if model.lattice is None:
+        return out
+    img = model.lattice.apply_to(sitk.GetImageFromArray(out))
+    ref = sitk.Image([int(v) for v in model.geometry.size], sitk.sitkInt32)
+    model.geometry.apply_to(ref)
+    return sitk.GetArrayFromImage(sitk.Resample(img, ref, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkInt32))

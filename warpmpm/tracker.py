@@ -30,11 +30,10 @@ import SimpleITK as sitk
 from .cine import CineFrame
 from .driving import ConvergenceConfig, SliceDrivenEstimator
 from .errors import InputError, InputWarning
-from .groundtruth import particle_label_map
 from .images import ORGANS, Case
 from .model import ParticleModel, build_model
 from .registration import BACKENDS, register_slice_organs
-from .rendering import render_plane
+from .rendering import particle_label_map, render_plane
 from .solver import SolverConfig
 
 TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "reason", "wall_s", "rms_residual_mm", "registration_ms",

@@ -100,7 +100,7 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
             sitk.WriteImage(frame, os.path.join(cine, f"frame_{k:04d}_{orientation}.nii.gz"))
         else:
             _write_dicom_frame(frame, os.path.join(cine, f"frame_{k:04d}.dcm"), k, t, thickness_mm, case.image)
-        from ..groundtruth import particle_label_map
+        from ..rendering import particle_label_map
 
         lab = particle_label_map(model, pos, {o: case.label_map[o] for o in model.organs})
         sitk.WriteImage(g.apply_to(sitk.GetImageFromArray(lab.astype(np.uint8))), os.path.join(truth, "labels", f"frame_{k:04d}.nii.gz"))
