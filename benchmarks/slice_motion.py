@@ -41,7 +41,7 @@ def mid_slices(prep, condition):
     return f"sagittal:{int(np.median(pan[:, 0])) + prep.offset[0]},coronal:{int(np.median(pan[:, 1])) + prep.offset[1]}"
 
 
-def task(name, deformation, protocol, conditions, kinds, backends=("itk",)):
+def task(name, deformation, protocol, conditions, kinds, backends=("itk",), passes=(1,)):
     warnings.simplefilter("ignore")
     cfg = CaseConfig(labels=os.path.join(DATA, name, "labels.nii.gz"), image=os.path.join(DATA, name, "image.nii.gz"), preset=name,
                      protocol=protocol, deformation=deformation, device="cpu",
@@ -51,14 +51,15 @@ def task(name, deformation, protocol, conditions, kinds, backends=("itk",)):
     rows = []
     for cond in conditions:
         slices = mid_slices(prep, cond)
-        runs = [(kind, drive, b) for kind, drive in kinds for b in (backends if kind.startswith("registration") else ("itk",))]
-        for n, (kind, drive, backend) in enumerate(runs):
+        reg = [(b, p) for b in backends for p in (passes if "," in slices else (1,))]
+        runs = [(kind, drive, b, p) for kind, drive in kinds for b, p in (reg if kind.startswith("registration") else [("itk", 1)])]
+        for n, (kind, drive, backend, npass) in enumerate(runs):
             c = replace(cfg, slices=slices, targets=kind, drive=drive, exclude_driven=True, registration=backend,
-                        baselines=cfg.baselines if n == 0 else ("propagate",))
+                        registration_passes=npass, baselines=cfg.baselines if n == 0 else ("propagate",))
             out = run_prepared(prep, gt, c)
             r = {k: v.to_json() for k, v in out.results.items()}
             rows.append({"case": name, "deformation": deformation, "condition": cond, "slices": slices, "targets": kind, "drive": drive,
-                         "backend": backend, "results": r, "registration": out.registration,
+                         "backend": backend, "passes": npass, "results": r, "registration": out.registration,
                          "target_in_plane_error_mm": out.target_in_plane_error_mm, "steps": out.estimate.steps})
     return rows
 
@@ -76,18 +77,24 @@ def table(rows, cond):
              f"{len({(r['case'], r['deformation']) for r in rs})} runs",
              "| targets | drive | estimate | propagate (same slice motion) | estimate vs propagate | target in-plane error | steps |",
              "|---|---|---|---|---|---|---|"]
-    for (kind, drive), backend in [(k, b) for k in KINDS for b in ("itk", "gauss-newton")]:
-        sel = [r for r in rs if r["targets"] == kind and r["drive"] == drive and r.get("backend", "itk") == backend]
+    for (kind, drive), backend, npass in [(k, b, n) for k in KINDS for b in ("itk", "gauss-newton") for n in range(1, 6)]:
+        sel = [r for r in rs if r["targets"] == kind and r["drive"] == drive and r.get("backend", "itk") == backend
+               and r.get("passes", 1) == npass]
         if not sel:
             continue
         label = kind if backend == "itk" or not kind.startswith("registration") else f"{kind} (gauss-newton)"
+        if npass > 1:
+            kept = np.mean([r["registration"].get("passes", 1) for r in sel])
+            label += f", {npass} passes ({kept:.1f} kept)"
         e = np.array([r["results"]["estimate"]["error_offslice_mm"] for r in sel])
         p = np.array([r["results"]["propagate"]["error_offslice_mm"] for r in sel])
         t = np.array([r["target_in_plane_error_mm"] for r in sel])
         reg = [r["registration"] for r in sel if r.get("registration")]
         ms = f", {1e3 * np.median([g['wall_s'] for g in reg]):.0f} ms a slice" if reg and "wall_s" in reg[0] else ""
         med = f", registration median {np.median([g['median_error_mm'] for g in reg]):.2f} mm" if reg and "median_error_mm" in reg[0] else ""
-        lines.append(f"| {label}{med}{ms} | {drive if kind != 'gt' else '3d'} | {e.mean():.2f} | {p.mean():.2f} | {100 * (e.mean() / p.mean() - 1):+.0f} % "
+        pl = [r["results"]["propagate_planes"]["error_offslice_mm"] for r in sel if "propagate_planes" in r["results"]]
+        planes = f" (all planes: {np.mean(pl):.2f})" if pl else ""
+        lines.append(f"| {label}{med}{ms} | {drive if kind != 'gt' else '3d'} | {e.mean():.2f} | {p.mean():.2f}{planes} | {100 * (e.mean() / p.mean() - 1):+.0f} % "
                      f"({int(np.sum(e < p))} of {len(e)} better) | {np.nanmean(t):.2f} | {np.mean([r['steps'] for r in sel]):.0f} |")
     for k, v in base.items():
         lines.append(f"| {k} | | {np.mean(list(v.values())):.2f} | | | | |")
@@ -103,6 +110,7 @@ def main(argv=None):
     p.add_argument("--kinds", default=None, help="comma-separated target:drive pairs (default: all)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--registration", default="itk", help="slice registration backends for the registration* kinds: itk, gauss-newton or both")
+    p.add_argument("--passes", default="1", help="registration passes for the registration* kinds on several planes, e.g. 1,3")
     p.add_argument("--name", default=None, help="raw results file name (default slice_motion_<protocol>)")
     a = p.parse_args(argv)
     cases = [c for c in a.cases.split(",") if os.path.exists(os.path.join(DATA, c, "labels.nii.gz"))]
@@ -111,12 +119,13 @@ def main(argv=None):
     kinds = [tuple(k.split(":")) for k in a.kinds.split(",")] if a.kinds else KINDS
     rows = []
     backends = tuple(a.registration.split(","))
-    args = [(c, int(d), a.protocol, a.conditions.split(","), kinds, backends) for c in cases for d in a.deformations.split(",")]
+    passes = tuple(int(n) for n in a.passes.split(","))
+    args = [(c, int(d), a.protocol, a.conditions.split(","), kinds, backends, passes) for c in cases for d in a.deformations.split(",")]
 
     def keep(rs):
         rows.extend(rs)
         print(f"{rs[0]['case']} def{rs[0]['deformation']}: " + ", ".join(
-            f"{r['condition']} {r['targets']}/{r['drive']}/{r['backend']} {r['results']['estimate']['error_offslice_mm']:.2f}" for r in rs),
+            f"{r['condition']} {r['targets']}/{r['drive']}/{r['backend']}/{r['passes']} {r['results']['estimate']['error_offslice_mm']:.2f}" for r in rs),
             flush=True)
 
     failed = run_tasks(task, args, keep, workers=a.workers)

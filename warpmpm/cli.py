@@ -89,6 +89,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--registration", default="itk", choices=["itk", "gauss-newton"],
                    help="the slice registration's optimiser (registration targets): ITK's gradient descent or Gauss-Newton, "
                    "the same correlation metric")
+    p.add_argument("--registration-passes", type=int, default=1,
+                   help="with several driving planes: register them this many times, each later pass against the planning image "
+                   "moved by the last pass's combined motion (kept while the planes match better); default 1")
     p.add_argument("--drive", default="pinned", choices=["inplane", "pinned"],
                    help="inplane: a slice drives only its in-plane components; pinned: the through-plane coordinate too")
     p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
@@ -276,7 +279,7 @@ def config_from_args(a):
     baselines = ("initial", "propagate") if a.no_volume_registration else ("initial", "propagate", "volume_registration")
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
                       organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets, drive=a.drive,
-                      registration=a.registration,
+                      registration=a.registration, registration_passes=a.registration_passes,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
                       solver=SolverConfig(contact=a.contact, friction=a.friction, method=a.solver, cpu_threads=a.threads))

@@ -73,6 +73,12 @@ class CaseConfig:
     """The slice registration's optimiser for the ``registration*`` targets
     (:func:`warpmpm.registration.register_slices`): ITK's gradient descent or Gauss-Newton, the same correlation
     metric."""
+    registration_passes: int = 1
+    """With several driving planes (``registration*`` targets), how many times the slices are registered: each
+    later pass against the planning image moved by the last pass's motion of every particle, all planes combined,
+    so motion through one plane that another measured is in its reference; a pass is kept only while the rendered
+    planes match the captured ones better (:func:`warpmpm.targets.registration_targets`). 1: once, against the
+    planning image. One plane: always once."""
     drive: DriveMode = "pinned"
     """``inplane``: a slice drives only the components in its plane; ``pinned``: also the through-plane
     coordinate (held where it was). ``gt`` targets are always driven in 3D."""
@@ -126,6 +132,10 @@ class CaseConfig:
             raise InputError(f"phantom resolution must be a finite number in 0.25..16, got {self.phantom_resolution!r}")
         if self.registration not in ("itk", "gauss-newton"):
             raise InputError(f"unknown slice registration backend {self.registration!r}; use itk or gauss-newton")
+        from ..targets import MAX_PASSES
+
+        if not _is_int(self.registration_passes) or not (1 <= self.registration_passes <= MAX_PASSES):
+            raise InputError(f"--registration-passes must be a whole number from 1 to {MAX_PASSES}, got {self.registration_passes!r}")
         parse_organs(self.organs)
         if self.slices is not None and self.slices != "" and not self.slices.startswith("auto"):
             parse_slices(self.slices)

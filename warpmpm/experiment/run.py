@@ -66,6 +66,8 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
                                                tg.fields.get(slices[0]), tg.organ_fields.get(slices[0])))
         if tg.organ_affines.get(slices[0]) or tg.fields.get(slices[0]) or tg.organ_fields.get(slices[0]):
             results["propagate_affine"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm))
+    if "propagate" in cfg.baselines and tg.combined_mm is not None:  # every plane's motion, combined, copied to the body
+        results["propagate_planes"] = score(tg.combined_mm)
     if "volume_registration" in cfg.baselines:
         pos, info = volume_registration(prep, gt, model)
         results["volume_registration"] = score(pos, **info)

@@ -38,13 +38,16 @@ class RunTargets:
 
     Attributes:
         drive: :class:`~warpmpm.targets.DriveTargets` (indices, targets, driven directions).
-        affines: the in-plane motion of each whole slice (fitted, known or registered).
+        affines: the in-plane motion of each whole slice (fitted, known or registered; with several registration
+            passes, the first's, against the planning image).
         organ_affines: per slice, each organ's own motion (organ-aware registration), else empty.
         registration: the registration's own error and time for the registration kinds, else None.
         in_plane_error_mm: mean in-plane distance of the targets of the slices' pancreas particles to their
             true positions (0 for the GT kinds), for every kind.
         fields: per slice, the deformable motion (``registration-bspline``), else empty.
         organ_fields: per slice, each organ's deformable motion (``registration-demons``), else empty.
+        combined_mm: with several registered planes, every particle under all planes' motions combined (the
+            ``propagate_planes`` baseline: the estimate's information, copied to the whole body), else None.
     """
 
     drive: DriveTargets
@@ -54,6 +57,7 @@ class RunTargets:
     in_plane_error_mm: float = float("nan")
     fields: dict = field(default_factory=dict)
     organ_fields: dict = field(default_factory=dict)
+    combined_mm: np.ndarray | None = None
 
     @property
     def idx(self) -> np.ndarray:
@@ -103,10 +107,15 @@ def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_po
     method = {"registration": "organs", "registration-affine": "affine", "registration-bspline": "bspline",
               "registration-demons": "demons"}[cfg.targets]
     drive, info = registration_targets(model, slices, planning, warped, case.labels, case.geometry, values, prep.centre_mm,
-                                       truth_mm=gt_pos, method=method, backend=cfg.registration)
+                                       truth_mm=gt_pos, method=method, backend=cfg.registration, passes=cfg.registration_passes)
+    first = info.pop("first_pass", None)  # several passes: the baselines copy the planes' motion against planning
     affines, organ_affines, fields = info.pop("affines"), info.pop("organ_affines"), info.pop("fields")
     organ_fields = info.pop("organ_fields")
+    if first is not None:
+        affines, organ_affines, fields, organ_fields = (first[k] for k in ("affines", "organ_affines", "fields", "organ_fields"))
+    combined = info.pop("combined_mm")
     info["organ_affines"] = {str(prep.to_input(s)): {o: a.to_json() for o, a in d.items()} for s, d in organ_affines.items()}
     info["organ_fields"] = {str(prep.to_input(s)): {o: {"min_jacobian": f.min_jacobian, "wall_s": f.wall_s} for o, f in d.items()}
                             for s, d in organ_fields.items()}
-    return RunTargets(drive, affines, organ_affines, info, info.get("error_mm", float("nan")), fields, organ_fields)
+    return RunTargets(drive, affines, organ_affines, info, info.get("error_mm", float("nan")), fields, organ_fields,
+                      combined if len(slices) > 1 else None)
