@@ -74,6 +74,8 @@ def _task_options() -> argparse.ArgumentParser:
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
+    from .registration import BACKENDS
+
     p.add_argument("--phantom-seed", type=int, default=0, help="seed of the phantom (and of the GT perturbations)")
     p.add_argument("--organs", default="psdl", help="organ combination: p, ps, pd, pl, psd, psl, pdl, psdl")
     p.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); "
@@ -86,7 +88,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    "(default: what images give), the organ-aware affines alone, an affine fitted to the GT (the paper's protocol), "
                    "GT 3D positions (upper bound), GT in-plane part (ceiling of 2D registration), one registered affine per slice, "
                    "or a registered B-spline field")
-    p.add_argument("--registration", default="itk", choices=["itk", "gauss-newton"],
+    p.add_argument("--registration", default="itk", choices=list(BACKENDS),
                    help="the slice registration's optimiser (registration targets): ITK's gradient descent or Gauss-Newton, "
                    "the same correlation metric")
     p.add_argument("--registration-passes", type=int, default=1,
@@ -122,6 +124,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``warpmpm`` parser with its subcommands."""
+    from .registration import BACKENDS
+
     # fresh parent parsers per subcommand: argparse shares a parent's actions, so one subcommand's
     # set_defaults (the sweep's phantom resolution) would otherwise change every other's
     case, device, selector, tasks = _case_options, _device_options, _selector_options, _task_options
@@ -189,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how each frame's equilibrium is found: auto (default): Newton / conjugate-gradient iterations to the "
                    "settled equilibrium, going on with explicit MPM steps when a frame has not settled after a few; explicit "
                    "MPM steps alone; or the Newton iterations alone")
-    k.add_argument("--registration", default="gauss-newton", choices=["gauss-newton", "itk"],
+    k.add_argument("--registration", default="gauss-newton", choices=list(BACKENDS),
                    help="the slice registration's optimiser: Gauss-Newton (default) or ITK's gradient descent (same correlation metric)")
     k.add_argument("--linear-prior", type=float, default=10.0,
                    help="Gauss-Newton registration: how strongly a frame's scale/shear/rotation is kept near the identity (whole "

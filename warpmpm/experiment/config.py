@@ -130,8 +130,10 @@ class CaseConfig:
         if not (isinstance(self.phantom_resolution, (int, float)) and math.isfinite(self.phantom_resolution)
                 and 0.25 <= self.phantom_resolution <= 16):
             raise InputError(f"phantom resolution must be a finite number in 0.25..16, got {self.phantom_resolution!r}")
-        if self.registration not in ("itk", "gauss-newton"):
-            raise InputError(f"unknown slice registration backend {self.registration!r}; use itk or gauss-newton")
+        from ..registration import BACKENDS
+
+        if self.registration not in BACKENDS:
+            raise InputError(f"unknown slice registration backend {self.registration!r}; use {' or '.join(BACKENDS)}")
         from ..targets import MAX_PASSES
 
         if not _is_int(self.registration_passes) or not (1 <= self.registration_passes <= MAX_PASSES):
