@@ -121,6 +121,10 @@ def cases(d):
         ("threads 0", run + ["--threads", "0"], "error"),
         ("auto solver with sliding contact", run + ["--solver", "auto", "--contact", "sliding"], "error"),
         ("unknown registration backend", run + ["--registration", "lbfgs"], "error"),
+        ("registration passes 0", run + ["--registration-passes", "0"], "error"),
+        ("unknown tracker reference (API)", ["python", "-c", "from warpmpm.tracker import TrackerConfig, Tracker; "
+                                             "from warpmpm.phantom import make_phantom; "
+                                             "Tracker(make_phantom(resolution=3.0), [], TrackerConfig(reference='none'))"], "error"),
         ("NaN linear prior (API)", ["python", "-c", "from warpmpm.gauss_newton import GaussNewtonConfig; "
                                     "GaussNewtonConfig(linear_prior=float('nan'))"], "error"),
         ("auto: 0 Newton iterations (API)", ["python", "-c", "from warpmpm.solver import QuasiStaticConfig; "
