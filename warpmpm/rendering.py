@@ -109,10 +109,12 @@ def slab_region(geometry: Geometry, plane_image: sitk.Image, normal: np.ndarray,
 
 
 def render_plane(case: Case, planning_mm: np.ndarray, positions_mm: np.ndarray, plane_image: sitk.Image, normal: np.ndarray,
-                 thickness_mm: float, sigma_mm: float = 4.0, far_sigma_mm: float = 25.0) -> sitk.Image:
+                 thickness_mm: float, sigma_mm: float = 4.0, far_sigma_mm: float = 25.0,
+                 planning_image: sitk.Image | None = None) -> sitk.Image:
     """The planning image moved by ``planning_mm -> positions_mm`` as a frame on ``plane_image``'s pixels would
     show it (an image on ``plane_image``'s grid, float32): the field on the slab around the plane only, the
-    intensity averaged over ``thickness_mm`` along ``normal`` (module docstring)."""
+    intensity averaged over ``thickness_mm`` along ``normal`` (module docstring). ``planning_image``: the case's
+    intensity image, when the caller keeps one (frame after frame it is not rebuilt from the array)."""
     if case.image is None:
         raise InputError(f"case {case.name} has no intensity image to render")
     if not (math.isfinite(thickness_mm) and thickness_mm > 0):
@@ -126,7 +128,7 @@ def render_plane(case: Case, planning_mm: np.ndarray, positions_mm: np.ndarray, 
     sub = g.crop(*region)
     field = backward_displacement(sub, planning_mm, positions_mm, sigma_mm, far_sigma_mm)
     tx = sitk.DisplacementFieldTransform(field)
-    moving = case.intensity_image()
+    moving = case.intensity_image() if planning_image is None else planning_image
     # the planning grid's spacing along the normal: sub-planes no further apart, at half-voxel offsets when the
     # thickness is a whole number of voxels, make the linear samples' mean the box over the voxels exactly
     step_mm = 1.0 / float(np.linalg.norm((g.direction_matrix.T @ normal) / np.asarray(g.spacing_mm)))

@@ -219,6 +219,8 @@ def _rendered_passes(model, slices, planning_volume, captured_volume, labels, ge
     values = [label_values[o] for o in model.organs]
     ref, lab, x = planning_volume, labels, x0
     best, kept, scores, n_kept, first, wall = -np.inf, None, [], 0, None, 0.0
+    captured = {s: capture_slice(captured_volume, geometry, s.orientation, s.index, centre_mm, noise_sd=kw["noise_sd"],
+                                 in_plane_factor=kw["in_plane_factor"]) for s in slices}  # the same every pass
     for k in range(passes):
         t0 = time.perf_counter()
         try:
@@ -233,9 +235,7 @@ def _rendered_passes(model, slices, planning_volume, captured_volume, labels, ge
             first = {key: info[key] for key in ("affines", "organ_affines", "fields", "organ_fields")}
         volume = warp_array(planning_volume, geometry, x0, moved_all)
         now = particle_label_map(model, moved_all, {o: label_values[o] for o in model.organs})
-        score = float(np.mean([_correlation(extract_slice(volume, geometry, s.orientation, s.index, centre_mm),
-                                            capture_slice(captured_volume, geometry, s.orientation, s.index, centre_mm,
-                                                          noise_sd=kw["noise_sd"], in_plane_factor=kw["in_plane_factor"]),
+        score = float(np.mean([_correlation(extract_slice(volume, geometry, s.orientation, s.index, centre_mm), captured[s],
                                             slice_mask(now, geometry, s.orientation, s.index, centre_mm, values))
                                for s in slices]))
         scores.append(score)

@@ -131,6 +131,7 @@ class Tracker:
         self.estimator = SliceDrivenEstimator(m, driven=self.driven, solver_config=cfg.solver, extra_points_mm=np.vstack(reach),
                                               convergence=ConvergenceConfig(max_steps=cfg.max_steps,
                                                                                             wait_settled=cfg.wait_settled))
+        self.planning_image = case.intensity_image()  # rendered frame after frame: built once
         self.last_frame: dict[int, CineFrame] = {}
         self.labels_now = case.labels.copy()
         self.propagated = m.positions_mm.copy()  # the baseline: each frame's slice motion copied to every particle
@@ -174,7 +175,8 @@ class Tracker:
         by_estimate = self.config.reference == "estimate"
         if by_estimate or prev is None:
             shown = x if by_estimate else m.positions_mm
-            stored = frame.slice_2d(render_plane(self.case, m.positions_mm, shown, frame.image, frame.normal, frame.thickness_mm))
+            stored = frame.slice_2d(render_plane(self.case, m.positions_mm, shown, frame.image, frame.normal, frame.thickness_mm,
+                                                 planning_image=self.planning_image))
         else:
             stored = prev.slice_2d()
         ref_s = time.perf_counter() - t_ref
