@@ -7,7 +7,7 @@ import SimpleITK as sitk
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
 from warpmpm.registration import register_slice_organs
 from warpmpm.scenes import block_model
-from warpmpm.slices import DrivingSlice, InPlaneAffine
+from warpmpm.slices import DrivingSlice, InPlaneAffine, in_plane_axes
 from warpmpm.solver import SolverConfig
 from warpmpm.targets import affine_drive_targets, in_plane_truth_targets, plane_projector, slice_targets
 
@@ -113,6 +113,36 @@ def test_propagate_uses_the_same_per_organ_slice_motion():
     d = out - m.positions_mm
     np.testing.assert_allclose(d[m.organ_slice("pancreas")], np.tile([0.0, 3.0, 0.0], (m.counts()["pancreas"], 1)), atol=1e-9)
     np.testing.assert_allclose(d[m.organ_slice("duodenum")], np.tile([1.0, 0.0, 0.0], (m.counts()["duodenum"], 1)), atol=1e-9)
+
+
+def test_the_ceiling_baselines_copy_each_organs_true_motion_and_combine_the_planes():
+    """Beside the gt / gt-inplane ceilings ``propagate`` copies each organ's in-plane affine fitted to its true motion
+    on the slice, and ``propagate_planes`` combines the planes: a truth that moves each organ by its own 3D
+    translation is reproduced exactly by the combined sagittal + coronal copy, and by neither plane alone."""
+    from warpmpm.experiment.baselines import propagate
+    from warpmpm.experiment.targets import truth_organ_affines
+    from warpmpm.images import PRESETS, Case, Geometry
+    from warpmpm.model import build_model
+    from warpmpm.targets import combine_planes
+
+    lab = np.zeros((10, 10, 12), np.int32)  # (z, y, x): the pancreas below, the duodenum above
+    lab[:5] = PRESETS["amos"]["pancreas"]
+    lab[5:] = PRESETS["amos"]["duodenum"]
+    m = build_model(Case(lab, Geometry((12, 10, 10), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0)), dict(PRESETS["amos"])), "pd")
+    shift = {"pancreas": np.array([1.0, -2.0, 0.5]), "duodenum": np.array([-1.5, 0.7, 2.0])}
+    truth = m.positions_mm.copy()
+    for o, t in shift.items():
+        truth[m.organ_slice(o)] += t
+    centre = m.positions_mm.mean(0)
+    slices = [DrivingSlice("sagittal", 6), DrivingSlice("coronal", 5)]  # each plane crosses both organs
+    fits = truth_organ_affines(m, truth, slices, centre)
+    assert all(set(fits[s]) == {"pancreas", "duodenum"} for s in slices)
+    whole = {s: InPlaneAffine.fit(m.positions_mm, truth, *in_plane_axes(m, s.orientation), centre) for s in slices}
+    copied = {s: propagate(m, s, whole[s], centre, fits[s]) for s in slices}
+    combined = combine_planes(m, m.positions_mm, slices, lambda s, i: copied[s][i])
+    np.testing.assert_allclose(combined, truth, atol=1e-6)
+    for s in slices:  # one plane misses its normal component of every organ's motion
+        assert np.abs(copied[s] - truth).max() > 0.4
 
 
 @pytest.mark.parametrize("kind", ["gt-inplane", "registration", "registration-affine", "registration-bspline", "registration-demons"])

@@ -330,11 +330,18 @@ def _registration_pass(model: ParticleModel, slices: list[DrivingSlice], plannin
         err = in_plane_errors_mm(model, slices, targets.idx, targets.targets_mm, truth_mm)
         info["error_mm"] = float(err.mean()) if err.size else float("nan")
         info["median_error_mm"] = float(np.median(err)) if err.size else float("nan")
+    info["combined_mm"] = combine_planes(model, positions_mm, slices, moved)
+    return targets, info, info["combined_mm"]
+
+
+def combine_planes(model: ParticleModel, positions_mm: np.ndarray, slices: list[DrivingSlice], moved) -> np.ndarray:
+    """Every particle under all slices' in-plane motions at once: ``moved(s, idx)`` gives the positions of particles
+    ``idx`` under slice ``s``'s motion; each slice contributes its in-plane components, averaged (least squares)
+    where slices share a direction (the ``propagate_planes`` baseline)."""
     everyone = np.arange(model.n)
     num, span = np.zeros((model.n, 3)), np.zeros((3, 3))
-    for s in slices:  # every particle under each slice's motion, in the least-squares sense where slices share a direction
+    for s in slices:
         P = plane_projector(model, s.orientation)
         num += (moved(s, everyone) - positions_mm) @ P.T
         span += P
-    info["combined_mm"] = positions_mm + num @ np.linalg.pinv(span).T
-    return targets, info, info["combined_mm"]
+    return positions_mm + num @ np.linalg.pinv(span).T

@@ -4,9 +4,11 @@
 - ``propagate``: the first driving slice's in-plane motion applied to every particle (what copying the
   slice's motion to the whole volume gives; nearly exact under the paper protocol, whose GT applies
   one 2D affine to every slice). With organ-aware registration targets each organ takes its own motion
-  on the slice (the same information as the estimate), and ``propagate_affine`` is the whole slice's. With
-  several registered planes, ``propagate_planes`` moves every particle by all planes' motions combined (each
-  plane's in-plane components, averaged where planes share a direction): the estimate's whole information.
+  on the slice (the same information as the estimate), and ``propagate_affine`` is the whole slice's; beside
+  the ``gt`` / ``gt-inplane`` ceilings each organ takes its in-plane affine fitted to its true motion on the
+  slice (a perfect organ-aware registration's). With several planes (registered, ``gt`` or ``gt-inplane``),
+  ``propagate_planes`` moves every particle by all planes' motions combined (each plane's in-plane components,
+  averaged where planes share a direction): the estimate's whole information.
 - ``volume_registration``: 3D affine registration of the planning volume to the GT volume (the
   paper's elastix comparison; it needs the whole 3D volume at time t, which a cine MR does not give).
 """

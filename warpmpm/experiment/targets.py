@@ -26,7 +26,9 @@ import numpy as np
 from ..groundtruth import GroundTruth, paper_affine
 from ..model import ParticleModel
 from ..slices import DrivingSlice, InPlaneAffine, driven_indices, in_plane_axes
-from ..targets import DriveTargets, affine_drive_targets, in_plane_errors_mm, in_plane_truth_targets, registration_targets
+from ..targets import (DriveTargets, affine_drive_targets, combine_planes, in_plane_errors_mm, in_plane_truth_targets,
+                       registration_targets)
+from .baselines import propagate
 from .capture import planning_and_gt_volumes
 from .case import PreparedCase
 from .config import CaseConfig
@@ -40,13 +42,14 @@ class RunTargets:
         drive: :class:`~warpmpm.targets.DriveTargets` (indices, targets, driven directions).
         affines: the in-plane motion of each whole slice (fitted, known or registered; with several registration
             passes, the first's, against the planning image).
-        organ_affines: per slice, each organ's own motion (organ-aware registration), else empty.
+        organ_affines: per slice, each organ's own motion (organ-aware registration; for ``gt`` / ``gt-inplane`` each
+            organ's affine fitted to its true in-plane motion, for the baselines), else empty.
         registration: the registration's own error and time for the registration kinds, else None.
         in_plane_error_mm: mean in-plane distance of the targets of the slices' pancreas particles to their
             true positions (0 for the GT kinds), for every kind.
         fields: per slice, the deformable motion (``registration-bspline``), else empty.
         organ_fields: per slice, each organ's deformable motion (``registration-demons``), else empty.
-        combined_mm: with several registered planes, every particle under all planes' motions combined (the
+        combined_mm: with several planes (registered, ``gt``, ``gt-inplane``), every particle under all planes' motions combined (the
             ``propagate_planes`` baseline: the estimate's information, copied to the whole body), else None.
     """
 
@@ -87,6 +90,24 @@ def slice_affines(prep: PreparedCase, model: ParticleModel, gt_pos: np.ndarray, 
     return out
 
 
+#: Fewest particles of an organ on a slice for the baselines of the GT kinds to fit the organ its own affine.
+MIN_ORGAN_PARTICLES = 10
+
+
+def truth_organ_affines(model: ParticleModel, gt_pos: np.ndarray, slices: list[DrivingSlice], centre_mm: np.ndarray) -> dict:
+    """Per slice, each organ's in-plane affine fitted to its slice particles' true motion (organs with at least
+    :data:`MIN_ORGAN_PARTICLES` there): what a perfect organ-aware affine registration would measure, so that
+    ``propagate`` beside the ``gt`` / ``gt-inplane`` ceilings copies the same information organ by organ."""
+    out = {}
+    organ_of = np.asarray(model.organs)[model.organ_index]
+    for s in slices:
+        idx = driven_indices(model, [s])
+        e_u, e_v = in_plane_axes(model, s.orientation)
+        out[s] = {o: InPlaneAffine.fit(model.positions_mm[idx[organ_of[idx] == o]], gt_pos[idx[organ_of[idx] == o]], e_u, e_v, centre_mm)
+                  for o in model.organs if np.count_nonzero(organ_of[idx] == o) >= MIN_ORGAN_PARTICLES}
+    return out
+
+
 def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_pos: np.ndarray, slices: list[DrivingSlice],
                 cfg: CaseConfig) -> RunTargets:
     """The targets of ``cfg.targets`` for ``model`` driven from ``slices``."""
@@ -100,7 +121,14 @@ def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_po
             if cfg.targets == "gt":  # the true 3D positions, driven in 3D
                 drive = DriveTargets(drive.idx, gt_pos[drive.idx], np.tile(np.eye(3), (len(drive.idx), 1, 1)))
         err = in_plane_errors_mm(model, slices, drive.idx, drive.targets_mm, gt_pos)
-        return RunTargets(drive, affines, in_plane_error_mm=float(err.mean()) if err.size else float("nan"))
+        organ_affines, combined = {}, None
+        if cfg.targets != "affine":  # the baselines copy what the true in-plane motion shows, organ by organ
+            organ_affines = truth_organ_affines(model, gt_pos, slices, prep.centre_mm)
+            if len(slices) > 1:
+                copied = {s: propagate(model, s, a, prep.centre_mm, organ_affines[s]) for s, a in zip(slices, affines)}
+                combined = combine_planes(model, x0, slices, lambda s, i: copied[s][i])
+        return RunTargets(drive, affines, organ_affines, in_plane_error_mm=float(err.mean()) if err.size else float("nan"),
+                          combined_mm=combined)
     case = prep.case
     planning, warped = planning_and_gt_volumes(case, gt)
     values = {o: case.label_map[o] for o in gt.model.organs}
