@@ -260,7 +260,38 @@ def test_polar_rotation_equals_svd_rotation():
     (dict(damping_bounds=(2.0, 4.0)), "damping_bounds must be"),
     (dict(damping_bounds=(0.1,)), "damping_bounds must be"),
     (dict(damping_memory_steps=0.5), "damping_memory_steps must be"),
+    (dict(min_layers_per_cell=0.5), "min_layers_per_cell must be"),
 ])
 def test_bad_damping_options_are_refused(kw, msg):
     with pytest.raises(InputError, match=msg):
         SolverConfig(**kw)
+
+
+def test_an_anisotropic_lattice_gets_more_than_one_layer_a_cell_and_the_fem_answer():
+    """A pancreas block sampled 2 x 2 x 4 mm (a thick-slice lattice) whose middle axial slice is turned 3 degrees,
+    settled, against the independent FEM on the same particles. With the cell equal to the 4 mm layer gap (one
+    layer a cell along z, the rule before ``MIN_LAYERS_PER_CELL``) the layers next to the slice move in a mode the
+    grid does not see: 9.7 % off the FEM (measured); with the derived cell (6 mm, 1.5 layers) 2.7 %."""
+    import math
+
+    from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
+    from warpmpm.fem import fem_displacement_mm
+    from warpmpm.slices import DrivingSlice, InPlaneAffine
+    from warpmpm.solver import MIN_LAYERS_PER_CELL
+    from warpmpm.targets import affine_targets
+
+    m = block_model((16, 16, 9), (2.0, 2.0, 4.0), "pancreas")
+    cfg = SolverConfig(device="cpu")
+    assert MPMModel(m, cfg).dx_mm == pytest.approx(MIN_LAYERS_PER_CELL * 4.0)
+    sl = [DrivingSlice("axial", 4)]
+    a = math.radians(3.0)
+    idx, tg = affine_targets(m, m.positions_mm, sl, [InPlaneAffine(np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]))],
+                             m.positions_mm.mean(0))
+    u_fem = fem_displacement_mm(m, idx, tg)
+    free = np.ones(m.n, bool)
+    free[idx] = False
+    est = SliceDrivenEstimator(m, sl, solver_config=cfg, extra_points_mm=tg, convergence=ConvergenceConfig(wait_settled=True, max_steps=3000))
+    res = est.estimate(tg)
+    u = res.positions_mm - m.positions_mm
+    assert res.settled
+    assert np.linalg.norm(u[free] - u_fem[free]) / np.linalg.norm(u_fem[free]) < 0.05

@@ -101,16 +101,28 @@ class QuasiStaticConfig:
             raise InputError(f"QuasiStaticConfig.cg_tolerance must be below 1, got {self.cg_tolerance}")
 
 
+#: Fewest particle layers a derived grid cell spans along any axis (``SolverConfig.cell_at_least_gap``). With one layer
+#: a cell along an axis (the cell equal to the gap between axial layers: the paper resolution's 3 mm layers in 3 mm
+#: cells, a thick-slice lattice) the layers next to a driven slice move in a mode the grid does not see. Measured
+#: (benchmarks/README.md, "Why a whole-abdomen scene does not settle"): a 2 x 2 x 4 mm pancreas block with a slice
+#: turned 3 degrees, settled, 9.7 % off the FEM with 4 mm cells and 2.7 % with 6 mm (shear 12.8 -> 9.9 %, scale 43 ->
+#: 30 %); the phantom's paper-resolution frame (particle step 1) 5.32 mm from its truth with 3 mm cells, 2.92 with
+#: 4.5 mm (the particle step 2 model: 3.01). Lattices with 1.5 layers a cell or more (the 3 mm samples) are unchanged;
+#: the default phantom's cell grows from 4.4 to 4.5 mm.
+MIN_LAYERS_PER_CELL = 1.5
+
+
 @dataclass(frozen=True)
 class SolverConfig:
     """Solver settings (physical units in the names).
 
     Attributes:
         particles_per_cell: particles per grid cell used to derive the cell size from the particle
-            volume, ``dx = max((ppc * V_p)^(1/3), largest gap between neighbouring particles)`` (a thick-slice
-            scan must not fall apart into sheets). The default 4 keeps more than one quadrature point per
-            cell (1 ppc gives the ringing 'null modes' of MPM) while keeping the cell near the slice
-            thickness, so organs closer than about one cell touch through the shared grid.
+            volume, ``dx = max((ppc * V_p)^(1/3), MIN_LAYERS_PER_CELL * largest gap between neighbouring particles)``
+            (a thick-slice scan must not fall apart into sheets, and no axis may hold one particle layer a cell).
+            The default 4 keeps more than one quadrature point per cell (1 ppc gives the ringing 'null modes' of
+            MPM) while keeping the cell near the slice thickness, so organs closer than about one cell touch
+            through the shared grid.
         cell_size_mm: explicit grid cell size (overrides ``particles_per_cell``).
         margin_mm: free space around the scene's bounding box (and any extra points given) for motion.
             Default 10 mm (was 30): the estimate's grid already covers the targets (and a tracker's
@@ -156,9 +168,13 @@ class SolverConfig:
             vessels and ducts; without any bond nothing tethers the pancreas in this model (it has no
             retroperitoneum), and a frictionless pancreas pushed by a neighbour floats away as a free body
             (measured: 13-31 mm on the real samples' contact scenarios). ``()``: every organ slides.
-        cell_at_least_gap: never make a cell smaller than the largest gap between neighbouring particles
-            (default). Only a simulation that drives every particle (the ground truth) may turn it off:
-            its layers are held by their targets, not by each other.
+        cell_at_least_gap: never make a derived cell smaller than ``min_layers_per_cell`` times the largest gap
+            between neighbouring particles, nor an explicit ``cell_size_mm`` smaller than the gap itself (default).
+            Only a simulation that drives every particle (the ground truth) may turn it off: its layers are held by
+            their targets, not by each other.
+        min_layers_per_cell: with ``cell_at_least_gap``, how many particle layers a derived cell spans at least along
+            every axis. Default :data:`MIN_LAYERS_PER_CELL` (1.5; one layer a cell leaves a mode the grid does not
+            see). The ground truth's finer grid keeps 1.0 (the rule its protocols' tables were measured with).
         method: how a frame's equilibrium is found. ``"explicit"`` (default): dynamic relaxation by explicit MLS-MPM
             steps under the PID drive, stopped by :class:`warpmpm.driving.ConvergenceConfig` (the paper's method).
             ``"quasistatic"``: Newton iterations with a matrix-free conjugate-gradient solve on the same grid
@@ -193,6 +209,7 @@ class SolverConfig:
     device: str | None = None
     check_every: int | None = None
     cell_at_least_gap: bool = True
+    min_layers_per_cell: float = MIN_LAYERS_PER_CELL
     contact: Literal["sticky", "sliding"] = "sticky"
     friction: float = 0.0
     bonded: tuple[tuple[str, ...], ...] = (("pancreas", "duodenum"),)
@@ -218,6 +235,7 @@ class SolverConfig:
         finite("damping_per_s", strict=False, optional=True)
         finite("damping_factor", strict=False)
         finite("friction", strict=False)
+        finite("min_layers_per_cell", lo=1.0, strict=False)
         if self.damping_rule not in ("auto", "adaptive", "fixed"):
             raise InputError(f"SolverConfig.damping_rule must be 'auto', 'adaptive' or 'fixed', got {self.damping_rule!r}")
         lo_hi = self.damping_bounds
@@ -259,6 +277,7 @@ RAYLEIGH_SLOTS = 64
 
 #: Bytes per particle of a step (two states of x, v, C, F; mass, volume, Lame; force) and per grid node (mass and
 #: momentum, 16, in each thread's copy; velocity, 12).
+
 BYTES_PER_PARTICLE = 220
 BYTES_PER_NODE = 28
 BYTES_PER_NODE_COPY = 16
@@ -266,7 +285,7 @@ BYTES_PER_NODE_COPY = 16
 
 def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm: np.ndarray | None = None):
     """``(dx_mm, origin_mm, grid_shape)`` of the background grid: the cell from the particle volume
-    (never smaller than the largest gap between neighbouring particles), the box of the particles and
+    (never smaller than :data:`MIN_LAYERS_PER_CELL` times the largest gap between neighbouring particles), the box of the particles and
     ``extra_points_mm`` plus ``margin_mm`` and the wall layer."""
     cfg = config
     if particles.n == 0:
@@ -279,8 +298,8 @@ def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm:
                              f"use cell_size_mm >= {gap:.2f}")
         dx = float(cfg.cell_size_mm)
     else:
-        # never a cell smaller than the largest gap between neighbouring particles (thick slices)
-        dx = max(float((cfg.particles_per_cell * np.median(particles.volume_mm3)) ** (1 / 3)), gap)
+        # the particle layers must share grid nodes (thick slices), and no axis may hold one layer a cell (null modes)
+        dx = max(float((cfg.particles_per_cell * np.median(particles.volume_mm3)) ** (1 / 3)), cfg.min_layers_per_cell * gap)
     pts = particles.positions_mm
     if extra_points_mm is not None and len(extra_points_mm):
         extra = np.asarray(extra_points_mm, dtype=np.float64).reshape(-1, 3)
