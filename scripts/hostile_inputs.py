@@ -139,6 +139,8 @@ def cases(d):
                                                    "l=np.zeros((10,20,20),np.int32); l[2:8,4:16,4:16]=10; "
                                                    "m=build_model(Case(l, Geometry((20,20,10),(0.8,0.8,5.0),(0,0,0)), PRESETS['amos']), 'p', lattice='voxel'); "
                                                    "MPMModel(m, SolverConfig(device='cpu', cell_size_mm=1.0))"], "error"),
+        ("less than one particle layer a cell (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; "
+                                                       "SolverConfig(min_layers_per_cell=0.5)"], "error"),
     ]
 
 
