@@ -101,7 +101,7 @@ class QuasiStaticConfig:
             raise InputError(f"QuasiStaticConfig.cg_tolerance must be below 1, got {self.cg_tolerance}")
 
 
-#: Fewest particle layers a derived grid cell spans along any axis (``SolverConfig.cell_at_least_gap``). With one layer
+#: Fewest particle layers a derived grid cell spans along any axis (the default of ``SolverConfig.min_layers_per_cell``). With one layer
 #: a cell along an axis (the cell equal to the gap between axial layers: the paper resolution's 3 mm layers in 3 mm
 #: cells, a thick-slice lattice) the layers next to a driven slice move in a mode the grid does not see. Measured
 #: (benchmarks/README.md, "Why a whole-abdomen scene does not settle"): a 2 x 2 x 4 mm pancreas block with a slice
@@ -118,7 +118,7 @@ class SolverConfig:
 
     Attributes:
         particles_per_cell: particles per grid cell used to derive the cell size from the particle
-            volume, ``dx = max((ppc * V_p)^(1/3), MIN_LAYERS_PER_CELL * largest gap between neighbouring particles)``
+            volume, ``dx = max((ppc * V_p)^(1/3), min_layers_per_cell * largest gap between neighbouring particles)``
             (a thick-slice scan must not fall apart into sheets, and no axis may hold one particle layer a cell).
             The default 4 keeps more than one quadrature point per cell (1 ppc gives the ringing 'null modes' of
             MPM) while keeping the cell near the slice thickness, so organs closer than about one cell touch
@@ -277,7 +277,6 @@ RAYLEIGH_SLOTS = 64
 
 #: Bytes per particle of a step (two states of x, v, C, F; mass, volume, Lame; force) and per grid node (mass and
 #: momentum, 16, in each thread's copy; velocity, 12).
-
 BYTES_PER_PARTICLE = 220
 BYTES_PER_NODE = 28
 BYTES_PER_NODE_COPY = 16
@@ -285,8 +284,8 @@ BYTES_PER_NODE_COPY = 16
 
 def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm: np.ndarray | None = None):
     """``(dx_mm, origin_mm, grid_shape)`` of the background grid: the cell from the particle volume
-    (never smaller than :data:`MIN_LAYERS_PER_CELL` times the largest gap between neighbouring particles), the box of the particles and
-    ``extra_points_mm`` plus ``margin_mm`` and the wall layer."""
+    (never smaller than ``min_layers_per_cell`` times the largest gap between neighbouring particles), the box of
+    the particles and ``extra_points_mm`` plus ``margin_mm`` and the wall layer."""
     cfg = config
     if particles.n == 0:
         raise InputError("the particle model is empty")

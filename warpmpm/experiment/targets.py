@@ -49,8 +49,8 @@ class RunTargets:
             true positions (0 for the GT kinds), for every kind.
         fields: per slice, the deformable motion (``registration-bspline``), else empty.
         organ_fields: per slice, each organ's deformable motion (``registration-demons``), else empty.
-        combined_mm: with several planes (registered, ``gt``, ``gt-inplane``), every particle under all planes' motions combined (the
-            ``propagate_planes`` baseline: the estimate's information, copied to the whole body), else None.
+        combined_mm: with several planes (registered, ``gt``, ``gt-inplane``), every particle under all planes' motions
+            combined (the ``propagate_planes`` baseline: the estimate's information, copied to the whole body), else None.
     """
 
     drive: DriveTargets
