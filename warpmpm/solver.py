@@ -174,7 +174,8 @@ class SolverConfig:
             their targets, not by each other.
         min_layers_per_cell: with ``cell_at_least_gap``, how many particle layers a derived cell spans at least along
             every axis. Default :data:`MIN_LAYERS_PER_CELL` (1.5; one layer a cell leaves a mode the grid does not
-            see). The ground truth's finer grid keeps 1.0 (the rule its protocols' tables were measured with).
+            see; 1.16 layers already do not, on the thick-slice block of benchmarks/README.md: 1.5 is a margin). The
+            ground truth's finer grid keeps 1.0 (the rule its protocols' tables were measured with).
         method: how a frame's equilibrium is found. ``"explicit"`` (default): dynamic relaxation by explicit MLS-MPM
             steps under the PID drive, stopped by :class:`warpmpm.driving.ConvergenceConfig` (the paper's method).
             ``"quasistatic"``: Newton iterations with a matrix-free conjugate-gradient solve on the same grid
