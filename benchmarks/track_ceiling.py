@@ -43,22 +43,16 @@ DATA = os.path.join(ROOT, "..", "shared", "data", "totalseg_mr")
 def organ_affine_copy(model, before, after, on, frame):
     """Every particle moved by its organ's in-plane affine fitted to ``after`` on the plane (the whole plane's for
     organs with fewer than 10 particles there); the through-plane coordinate kept."""
-    uv0 = frame.in_plane(before)
-    uv1 = frame.in_plane(after)
+    from warpmpm.slices import InPlaneAffine
 
-    def fit(sel):
-        X = np.c_[uv0[sel], np.ones(len(sel))]
-        sol, *_ = np.linalg.lstsq(X, uv1[sel], rcond=None)
-        return sol
-
-    whole = fit(on)
+    axes = (frame.e_u, frame.e_v, frame.centre_mm)
+    whole = InPlaneAffine.fit(before[on], after[on], *axes)
     out = before.copy()
     for k in range(len(model.organs)):
         members = model.organ_index == k
         own = on[model.organ_index[on] == k]
-        sol = fit(own) if len(own) >= 10 else whole
-        d = np.c_[uv0[members], np.ones(members.sum())] @ sol - uv0[members]
-        out[members] += d[:, :1] * frame.e_u + d[:, 1:] * frame.e_v
+        affine = InPlaneAffine.fit(before[own], after[own], *axes) if len(own) >= 10 else whole
+        out[members] = affine.apply(before[members], *axes)
     return out
 
 
@@ -98,7 +92,13 @@ def main(argv=None):
 
     warnings.simplefilter("ignore")
     case = load_case(os.path.join(DATA, "labels.nii.gz"), os.path.join(DATA, "image.nii.gz"), preset="totalseg_mr")
-    noise = [float(s) for s in a.noise.split(",")]
+    try:
+        noise = [float(s) for s in a.noise.split(",")]
+        wanted = [int(k) for k in a.frames.split(",")] if a.frames else None
+    except ValueError as e:
+        p.error(f"--noise takes numbers (mm) and --frames whole frame numbers, comma-separated: {e}")
+    if not all(np.isfinite(s) and s >= 0 for s in noise):
+        p.error(f"--noise levels must be finite and >= 0 mm, got {a.noise}")
     rng = np.random.default_rng(a.seed)
     rows = []
     print("| series | frame | initial | propagate (perfect organ affines) | estimate (true in-plane targets) | "
@@ -119,7 +119,9 @@ def main(argv=None):
             continue
         P0 = model.positions_mm
         pan = model.organ_slice("pancreas")
-        picked = [int(k) for k in a.frames.split(",")] if a.frames else list(range(5, len(frames), 6))
+        picked = wanted if wanted is not None else list(range(5, len(frames), 6))
+        if any(k < 0 or k >= min(len(frames), len(tr["truth_mm"])) for k in picked):
+            p.error(f"--frames {a.frames}: {name} has frames 0-{min(len(frames), len(tr['truth_mm'])) - 1}")
         for k in picked:
             T, frame = tr["truth_mm"][k], frames[k]
             on = np.nonzero(np.abs(frame.distance_mm(T)) <= frame.thickness_mm / 2)[0]  # on the plane when imaged
