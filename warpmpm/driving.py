@@ -37,6 +37,7 @@ from .errors import InputError, SimulationError
 from .model import ParticleModel
 from .slices import DrivingSlice, driven_indices
 from .quasistatic import QuasiStaticSolver
+from .rigid_modes import RigidModeAccelerator
 from .solver import MPMModel, MPMSolver, SolverConfig
 
 
@@ -368,6 +369,12 @@ class SliceDrivenEstimator:
                             if self.mpm.config.method in ("quasistatic", "auto") else None)
         self.drive_config = drive_config or DriveConfig()
         self.gains = self.drive_config.resolve(self.mpm.dt_s, self.mpm.dx_mm, settle=settle)
+        #: the coarse level of the explicit relaxation (:attr:`SolverConfig.rigid_mode_acceleration`); None: none
+        acc = self.mpm.config.rigid_mode_acceleration
+        self.accelerator = None
+        if self.mpm.config.method != "quasistatic" and (acc == "on" or (acc == "auto" and settle and self.mpm.n_fields == 1)):
+            self.accelerator = RigidModeAccelerator(self.mpm)
+            self.solver.set_accelerator(self.accelerator)
         d = self.mpm.device
         self.state = self.mpm.state()
         self._other = self.mpm.state()
@@ -508,6 +515,11 @@ class SliceDrivenEstimator:
         self._force.zero_()
         self.solver.reset_damping()
         g = self.gains
+        if self.accelerator is not None:  # the coarse modes of this frame's drive, from where the frame starts
+            layout = self.accelerator.layout
+            self.accelerator.build(self.state, self.driven, axes, g.kp_per_s2)
+            if self.accelerator.layout != layout:
+                self._graph = None  # the captured launches point at the accelerator's old arrays
         rel_hist, rms_hist = [], []
         t0 = time.perf_counter()
         done = False

@@ -104,10 +104,17 @@ def fixed_corotated_kirchhoff(F: wp.mat33, mu: float, lam: float):
 
 
 @wp.func
+def stress_impulse(F: wp.mat33, V0: float, mu: float, lam: float, dt: float, inv_dx: float):
+    """The stress part of what a particle scatters with its offset to each node (MLS-MPM):
+    ``-dt V0 4/dx^2 tau``, tau the fixed-corotated Kirchhoff stress of F."""
+    return -(dt * V0 * 4.0 * inv_dx * inv_dx) * fixed_corotated_kirchhoff(F, mu, lam)
+
+
+@wp.func
 def apic_stress_affine(F: wp.mat33, C: wp.mat33, m: float, V0: float, mu: float, lam: float, dt: float, inv_dx: float):
-    """The matrix a particle scatters with its offset to each node: APIC momentum ``m C`` plus the stress
-    impulse ``-dt V0 4/dx^2 tau`` (MLS-MPM), tau the fixed-corotated Kirchhoff stress of F."""
-    return m * C - (dt * V0 * 4.0 * inv_dx * inv_dx) * fixed_corotated_kirchhoff(F, mu, lam)
+    """The matrix a particle scatters with its offset to each node: APIC momentum ``m C`` plus the
+    :func:`stress_impulse`."""
+    return m * C + stress_impulse(F, V0, mu, lam, dt, inv_dx)
 
 
 @wp.kernel
@@ -124,19 +131,24 @@ def p2g(
     dx: float,
     dt: float,
     part_nx: int,
+    want_force: int,
     grid_m: wp.array(dtype=float, ndim=3),
     grid_mv: wp.array(dtype=wp.vec3, ndim=3),
+    grid_f: wp.array(dtype=wp.vec3, ndim=3),
 ):
     """Stress of the particle's F, then the scatter of mass, APIC momentum with the stress impulse and
     the external force (one pass: the stress is never stored). ``part_nx``: where along the grid's first
     axis this launch's copy of the grid starts (:mod:`warpmpm.parallel`: each thread of a split step
-    scatters into a copy of its own, so no two threads add to one node; 0 for a whole launch)."""
+    scatters into a copy of its own, so no two threads add to one node; 0 for a whole launch).
+    ``want_force`` 1: also scatter the step's force impulse alone (stress and external, N s) into ``grid_f``
+    (the rigid-mode acceleration of :mod:`warpmpm.rigid_modes` restricts it); 0: ``grid_f`` is not touched."""
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x[p]
     base, fx, wx, wy, wz = stencil(xp, inv_dx)
     m = mass[p]
-    affine = apic_stress_affine(F[p], C[p], m, vol0[p], mu[p], lam[p], dt, inv_dx)
+    stress = stress_impulse(F[p], vol0[p], mu[p], lam[p], dt, inv_dx)
+    affine = m * C[p] + stress
     mom = m * v[p]
     impulse = dt * f_ext[p]
     for a in range(3):
@@ -149,6 +161,8 @@ def p2g(
                 kk = base[2] + c
                 wp.atomic_add(grid_mv, ii, jj, kk, w * (mom + affine * dpos + impulse))
                 wp.atomic_add(grid_m, ii, jj, kk, w * m)
+                if want_force != 0:
+                    wp.atomic_add(grid_f, ii, jj, kk, w * (stress * dpos + impulse))
 
 
 @wp.func
@@ -320,14 +334,19 @@ def grid_update(
     i0: int,
     damping: wp.array(dtype=float),
     wall: int,
+    want_force: int,
+    grid_f: wp.array(dtype=wp.vec3, ndim=3),
     grid_v: wp.array(dtype=wp.vec3, ndim=3),
+    force_sum: wp.array(dtype=wp.vec3, ndim=3),
 ):
     """Momentum -> velocity, velocity damping ``v <- v * damping[0]``, slip walls ``wall`` cells thick.
 
     The scattered mass and momentum come in ``parts`` copies of the grid stacked along x (one per thread of
     a split P2G, :mod:`warpmpm.parallel`; 1 for a whole one): they are added here. Clears what it has read,
     so the next step's ``p2g`` scatters into a clean grid without a separate clearing pass over every node
-    (the grid starts zeroed). The launch covers nodes ``i0 + tid`` along x (a split update)."""
+    (the grid starts zeroed). The launch covers nodes ``i0 + tid`` along x (a split update).
+    ``want_force`` 1: the copies of the force impulse ``grid_f`` are added into ``force_sum`` (every node written)
+    and cleared the same way."""
     t, j, k = wp.tid()
     i = t + i0
     nx = grid_v.shape[0]
@@ -335,14 +354,20 @@ def grid_update(
     for q in range(parts):
         m += grid_m[q * nx + i, j, k]
     vel = wp.vec3(0.0)
+    fsum = wp.vec3(0.0)
     if m > 0.0:
         mv = wp.vec3(0.0)
         for q in range(parts):
             mv += grid_mv[q * nx + i, j, k]
             grid_m[q * nx + i, j, k] = 0.0
             grid_mv[q * nx + i, j, k] = wp.vec3(0.0)
+            if want_force != 0:
+                fsum += grid_f[q * nx + i, j, k]
+                grid_f[q * nx + i, j, k] = wp.vec3(0.0)
         vel = slip_walls(mv / m * damping[0], i, j, k, wp.vec3i(nx, grid_v.shape[1], grid_v.shape[2]), wall)
     grid_v[i, j, k] = vel
+    if want_force != 0:
+        force_sum[i, j, k] = fsum
 
 
 @wp.func

@@ -42,3 +42,31 @@ def merge_models(a: ParticleModel, b: ParticleModel) -> ParticleModel:
     mats = {**a.materials, **b.materials}
     return ParticleModel(np.vstack([a.positions_mm, b.positions_mm]), idx, organs, np.vstack([a.voxel_ijk, b.voxel_ijk]),
                          np.concatenate([a.volume_mm3, b.volume_mm3]), {o: mats[o] for o in organs}, a.geometry)
+
+
+def inclusion_model(
+    shape: tuple[int, int, int],
+    box: tuple[tuple[int, int], tuple[int, int], tuple[int, int]],
+    spacing_mm: tuple[float, float, float] = (2.0, 2.0, 2.0),
+    matrix: str = "pancreas",
+    inclusion: str = "duodenum",
+    materials: dict[str, Material] | None = None,
+) -> ParticleModel:
+    """A block of ``matrix`` with the voxels of ``box`` (``((i0, i1), (j0, j1), (k0, k1))``, half-open voxel ranges)
+    made of ``inclusion``: one lattice, one particle per voxel (so the FEM reference can mesh it). With the box away
+    from a driven slice it is a stiff body hanging on a soft one, the case that sets how fast a whole abdomen settles
+    (:mod:`warpmpm.rigid_modes`)."""
+    if matrix == inclusion:
+        raise InputError("inclusion_model needs two different organs")
+    base = block_model(shape, spacing_mm, matrix, materials=materials)
+    ijk = base.voxel_ijk
+    inside = np.ones(base.n, dtype=bool)
+    for axis, (lo, hi) in enumerate(box):
+        if not (0 <= lo < hi <= shape[axis]):
+            raise InputError(f"inclusion box {box} does not fit the block's {shape} voxels along axis {axis}")
+        inside &= (ijk[:, axis] >= lo) & (ijk[:, axis] < hi)
+    mats = dict(PAPER_MATERIALS)
+    mats.update(materials or {})
+    organs = tuple(o for o in ORGANS if o in (matrix, inclusion))
+    idx = np.where(inside, organs.index(inclusion), organs.index(matrix)).astype(np.int32)
+    return ParticleModel(base.positions_mm, idx, organs, ijk, base.volume_mm3, {o: mats[o] for o in organs}, base.geometry)

@@ -185,6 +185,14 @@ class SolverConfig:
             goes on with explicit steps from there (the result's ``method`` says which finished it). The tracker's
             default, where a predicted frame starts in equilibrium; sticky contact only.
         quasistatic: settings of the ``"quasistatic"`` method.
+        rigid_mode_acceleration: a coarse level for the explicit relaxation (:mod:`warpmpm.rigid_modes`): each organ's
+            six rigid motions, whose coarse modes slower than the body's slowest deformation are accelerated to it
+            (a two-level mass matrix; the equilibrium is unchanged, the step stays stable). Mass scaling makes the
+            stiff organs (duodenum, stomach: up to 2,900x the pancreas's modulus) as heavy as they are stiff, and
+            their rigid swings on the soft pancreas are what keeps a whole abdomen from settling.
+            ``"auto"`` (default): on when a frame waits for the body to settle (``ConvergenceConfig.wait_settled``) and
+            the contact is sticky; ``"on"``: also when a frame stops on the driven slice alone (sticky contact only);
+            ``"off"``: never.
         cpu_threads: on the CPU, threads an explicit step splits its particle and grid kernels over
             (:mod:`warpmpm.parallel`: Warp runs each CPU launch on one core, and launches over disjoint
             particle ranges from several threads run at once; each thread scatters into a grid copy of its
@@ -216,6 +224,7 @@ class SolverConfig:
     bonded: tuple[tuple[str, ...], ...] = (("pancreas", "duodenum"),)
     method: Literal["explicit", "quasistatic", "auto"] = "explicit"
     quasistatic: QuasiStaticConfig = QuasiStaticConfig()
+    rigid_mode_acceleration: Literal["auto", "on", "off"] = "auto"
     cpu_threads: int | None = None
 
     def __post_init__(self):
@@ -252,6 +261,11 @@ class SolverConfig:
             raise InputError(f"SolverConfig.method {self.method!r} handles sticky contact only; use contact='sticky' or the explicit method")
         if self.contact not in ("sticky", "sliding"):
             raise InputError(f"SolverConfig.contact must be 'sticky' or 'sliding', got {self.contact!r}")
+        if self.rigid_mode_acceleration not in ("auto", "on", "off"):
+            raise InputError(f"SolverConfig.rigid_mode_acceleration must be 'auto', 'on' or 'off', got {self.rigid_mode_acceleration!r}")
+        if self.rigid_mode_acceleration == "on" and self.contact != "sticky":
+            raise InputError("SolverConfig.rigid_mode_acceleration 'on' handles sticky contact only (one grid field); "
+                             "use contact='sticky' or rigid_mode_acceleration='auto' / 'off'")
         groups = self.bonded
         if not isinstance(groups, tuple) or not all(isinstance(g, tuple) and all(isinstance(o, str) for o in g) for g in groups):
             raise InputError(f"SolverConfig.bonded must be a tuple of tuples of organ names, got {groups!r}")
@@ -491,6 +505,10 @@ class MPMSolver:
         self.grid_mv = wp.zeros(copies, dtype=wp.vec3, device=d)
         self.grid_v = wp.zeros(stacked, dtype=wp.vec3, device=d)
         self.grid_g = wp.zeros(copies, dtype=wp.vec3, device=d) if self.fields else None
+        #: the coarse level of the relaxation (:mod:`warpmpm.rigid_modes`), set by :meth:`set_accelerator`; None: none
+        self.accelerator = None
+        # the step's force impulse alone (scattered copies and their sum), only while an accelerator is set
+        self._grid_f = self._force_sum = wp.zeros((1, 1, 1), dtype=wp.vec3, device=d)
         self.zero_force = wp.zeros(model.n, dtype=wp.vec3, device=d)
         # one status flag per thread (a CPU "atomic" is a plain read-modify-write: two threads must not share one)
         self._status_parts = [wp.array(np.array([0, 2**31 - 1, 2**31 - 1], dtype=np.int32), dtype=int, device=d)
@@ -513,6 +531,18 @@ class MPMSolver:
         self._dx = dx_m
         self._x_min = 1.0 * dx_m
         self._x_max = wp.vec3(*[(s - 2.0) * dx_m for s in shape])
+
+    def set_accelerator(self, accelerator) -> None:
+        """Use ``accelerator`` (a :class:`warpmpm.rigid_modes.RigidModeAccelerator`, or None for none) in every step
+        from now on: P2G then also scatters the force impulse apart, and the accelerator adds its coarse velocity
+        change after the grid update."""
+        d = self.model.device
+        self.accelerator = accelerator
+        if accelerator is None:
+            self._grid_f = self._force_sum = wp.zeros((1, 1, 1), dtype=wp.vec3, device=d)
+        elif self._force_sum.shape != self.grid_v.shape:
+            self._grid_f = wp.zeros(self.grid_mv.shape, dtype=wp.vec3, device=d)
+            self._force_sum = wp.zeros(self.grid_v.shape, dtype=wp.vec3, device=d)
 
     def set_driven(self, driven: np.ndarray) -> None:
         """Leave the driven particles out of the adaptive damping's stiffness estimate (their drive is a spring
@@ -556,8 +586,6 @@ class MPMSolver:
         if parts == 1:
             self._p2g_part(0, state_in.x, state_in.v, state_in.C, state_in.F, force, [m.mass, m.vol0, m.mu, m.lam, m.field], dt)
             self._grid_update(0, nx, damping, 1)
-            self._g2p_part(0, state_in.x, state_in.x_carry, state_in.F, m.field,
-                           [state_out.x, state_out.x_carry, state_out.v, state_out.C, state_out.F], dt)
         else:
             n = len(self._ranges)
             x_in, v_in, C_in, F_in, f_in = (self._views(a) for a in (state_in.x, state_in.v, state_in.C, state_in.F, force))
@@ -567,6 +595,12 @@ class MPMSolver:
             parallel.run_together(
                 lambda k=k: self._p2g_part(k, x_in[k], v_in[k], C_in[k], F_in[k], f_in[k], [a[k] for a in pv], dt) for k in range(n))
             parallel.run_together(lambda k=k: self._grid_update(*self._node_ranges[k], damping, n) for k in range(n))
+        if self.accelerator is not None:
+            self.accelerator.correct(self._force_sum, damping, self.grid_v)
+        if parts == 1:
+            self._g2p_part(0, state_in.x, state_in.x_carry, state_in.F, m.field,
+                           [state_out.x, state_out.x_carry, state_out.v, state_out.C, state_out.F], dt)
+        else:
             parallel.run_together(
                 lambda k=k: self._g2p_part(k, x_in[k], carry_in[k], F_in[k], pv[4][k], [a[k] for a in outs], dt) for k in range(n))
         if self.adaptive:
@@ -589,7 +623,8 @@ class MPMSolver:
                                                        k * nx * m.n_fields, self.grid_m, self.grid_mv, self.grid_g], device=m.device)
         else:
             wp.launch(kernels.p2g, x.shape[0], [x, v, C, F, force, mass, vol0, mu, lam, self._dx, dt, k * nx,
-                                                self.grid_m, self.grid_mv], device=m.device)
+                                                int(self.accelerator is not None), self.grid_m, self.grid_mv, self._grid_f],
+                      device=m.device)
 
     def _grid_update(self, lo, hi, damping, parts):
         """Grid update of the node slab ``lo <= i < hi`` along x, adding ``parts`` copies of the scattered sums."""
@@ -600,7 +635,8 @@ class MPMSolver:
             wp.launch(kernels.grid_update_fields, dim, [self.grid_m, self.grid_mv, self.grid_g, m.n_fields, m.grid_shape[0], parts, lo,
                                                         damping, cfg.wall_cells, cfg.friction, self.grid_v], device=m.device)
         else:
-            wp.launch(kernels.grid_update, dim, [self.grid_m, self.grid_mv, parts, lo, damping, cfg.wall_cells, self.grid_v],
+            wp.launch(kernels.grid_update, dim, [self.grid_m, self.grid_mv, parts, lo, damping, cfg.wall_cells,
+                                                 int(self.accelerator is not None), self._grid_f, self.grid_v, self._force_sum],
                       device=m.device)
 
     def _g2p_part(self, k, x, carry, F, field, outs, dt):

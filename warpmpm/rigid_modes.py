@@ -1,0 +1,491 @@
+"""Rigid-mode acceleration of the explicit relaxation: a two-level mass matrix for stiff organs on a soft one.
+
+Why. Mass scaling (:attr:`SolverConfig.mass_scaling <warpmpm.solver.SolverConfig.mass_scaling>`) gives every
+material the stiffest one's wave speed, so the time step is that of the softest: each organ's density becomes
+proportional to its modulus. The duodenum (2,900x the pancreas's shear modulus) then weighs 2,900x the pancreas per
+volume, and its motions on the soft pancreas, held by a few driven particles, are the slowest modes of the scene by
+far (on the resolution-3 phantom the slowest swings at ``omega dt`` 0.009, 13x below the slowest deformation of the
+body ``pi c / L``): a frame needs thousands of steps to settle, and the settled rule can be fooled by a motion too
+slow to register (benchmarks/README.md, "Rigid-mode acceleration").
+
+What. The grid update's velocity change ``dv = M^-1 f dt`` becomes ::
+
+    dv = (M^-1 + Z B Z^T) f dt
+
+with ``Z`` the six rigid motions (three translations, three rotations about the group's centre divided by its radius
+of gyration ``L_g``; or twelve affine ones) of every *group* of particles on the grid nodes, each weighed by the
+group's share of the node's mass, and ``B = Phi diag(beta_j - 1) Phi^T`` from the coarse eigenproblem ::
+
+    E Phi = M_c Phi diag(omega_j^2),   E = Z^T K Z,   M_c = Z^T M Z,   Phi^T M_c Phi = I
+
+(``K``: the small-strain stiffness of the particles on the grid plus the drive's spring, the operator of
+:mod:`warpmpm.quasistatic`; ``M``: the nodal masses), ``beta_j = omega_t^2 / omega_j^2`` for the modes slower than the
+target ``omega_t`` and 1 for the others. Coarse mode ``j`` then accelerates as if its mass were ``1 / beta_j`` of what
+it is: it swings at ``omega_t`` instead of ``omega_j``, and the adaptive damping (:attr:`SolverConfig.damping_rule
+<warpmpm.solver.SolverConfig.damping_rule>`) brings it to rest with the rest of the body. A group is a cube of about
+``aggregate_mm`` of one organ (:func:`aggregate_groups`): with whole organs as groups a stiff organ's bending is still
+slow; with 25 mm cubes the default phantom settles in 1,500 steps instead of 4,500 (benchmarks/README.md).
+
+What it does not change. The equilibrium: where the force vanishes, so does the correction (it preconditions the
+relaxation, it is not physics). Stability: the eigenvalues of the preconditioned stiffness ``(M^-1 + Z B Z^T) K``
+exceed those of ``M^-1 K`` by at most ``max_j (beta_j - 1) omega_j^2 <= omega_t^2`` (Weyl's inequality), so with
+``omega_t dt`` far below the explicit limit 2 the step stays stable at the same time step. ``f`` is the step's own
+force impulse (stress and drive), scattered apart from the momentum by :func:`warpmpm.kernels.p2g`; ``E`` and ``M_c``
+are assembled particle by particle from the same stencils (:meth:`RigidModeAccelerator.build`), so restriction,
+prolongation and coarse matrix are one consistent ``Z``.
+
+Sticky contact only (one grid velocity field), like the quasi-static solver.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from .errors import InputError
+from .model import ParticleModel
+from .solver import MPMModel, State
+
+__all__ = ["RigidModeAccelerator", "aggregate_groups", "TARGET_FACTOR", "AGGREGATE_MM", "MAX_BOOST"]
+
+#: the target frequency of the coarse modes, ``omega_t = TARGET_FACTOR * pi c / L`` (c: the scaled wave speed the time
+#: step uses; L: the scene's largest extent): the slowest deformation of the body, so a coarse mode is brought up to the
+#: body's own pace (2 and 4 were measured: 1,300 steps each against 1,500 on the resolution-3 phantom)
+TARGET_FACTOR = 1.0
+
+#: edge of the cubes each organ is cut into for the coarse space (mm); measured on the default phantom's scaled slice
+#: (settled mode, steps to settle): whole organs 4,500, 40 mm 2,200, 25 mm 1,500 (benchmarks/README.md)
+AGGREGATE_MM = 25.0
+
+#: a cube holding fewer particles than this joins the nearest larger one of its organ (a sliver of a few particles has
+#: almost no mass and would make the coarse mass matrix nearly singular)
+MIN_GROUP_PARTICLES = 50
+
+#: the largest boost of a coarse mode (a mode with no stiffness at all, a group nothing holds, would get an infinite
+#: one; its force is zero, so the cap only keeps rounding noise from being amplified without bound)
+MAX_BOOST = 1.0e4
+
+#: the most groups a grid node keeps (the largest shares; the rest are dropped from ``Z`` everywhere alike)
+NODE_GROUPS = 8
+
+#: slots the coarse force is spread over (by node), then summed (a GPU would otherwise queue every node's atomics on
+#: the same few addresses)
+SLOTS = 64
+
+
+def aggregate_groups(particles: ParticleModel, size_mm: float | None = AGGREGATE_MM) -> np.ndarray:
+    """A group index per particle: each organ cut into cubes of ``size_mm`` (from its own bounding box), a cube with
+    fewer than :data:`MIN_GROUP_PARTICLES` particles merged into the nearest kept cube of the same organ (by centroid);
+    ``size_mm`` None: one group per organ."""
+    if size_mm is not None and not (isinstance(size_mm, (int, float)) and math.isfinite(size_mm) and size_mm > 0):
+        raise InputError(f"aggregate size must be a finite number of mm > 0 (or None: whole organs), got {size_mm!r}")
+    groups = np.zeros(particles.n, dtype=np.int32)
+    nxt = 0
+    for o in range(len(particles.organs)):
+        idx = np.nonzero(particles.organ_index == o)[0]
+        if idx.size == 0:
+            continue
+        if size_mm is None:
+            groups[idx] = nxt
+            nxt += 1
+            continue
+        x = particles.positions_mm[idx]
+        cube = np.floor((x - x.min(0)) / size_mm).astype(np.int64)
+        _, label = np.unique(cube, axis=0, return_inverse=True)
+        label = label.ravel()
+        count = np.bincount(label)
+        kept = np.nonzero(count >= MIN_GROUP_PARTICLES)[0]
+        if kept.size == 0:
+            kept = np.array([int(np.argmax(count))])
+        centres = np.stack([x[label == c].mean(0) for c in kept])
+        own = np.full(count.size, -1)
+        own[kept] = np.arange(kept.size)
+        mine = own[label]
+        lone = mine < 0
+        if lone.any():
+            mine[lone] = np.argmin(((x[lone, None, :] - centres[None]) ** 2).sum(2), axis=1)
+        groups[idx] = nxt + mine
+        nxt += kept.size
+    return groups
+
+
+def _basis(affine: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``(a, A)`` of the coarse modes of one group, mode ``c`` at ``y = (x - centre) / L`` being ``a_c + A_c y``:
+    translations ``e_k``, then rotations ``e_k x y`` (rigid) or the affine ``e_k y_l``."""
+    S = 12 if affine else 6
+    a = np.zeros((S, 3))
+    A = np.zeros((S, 3, 3))
+    for k in range(3):
+        a[k, k] = 1.0
+        e = np.eye(3)[k]
+        if affine:
+            for l in range(3):
+                A[3 + 3 * k + l, k, l] = 1.0
+        else:
+            A[3 + k] = np.cross(e, np.eye(3))  # (e_k x y) = A y: column l is e_k x e_l
+            A[3 + k] = A[3 + k].T
+    return a, A
+
+
+def _stencils(x_m: np.ndarray, dx: float, grid_shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each particle's 27 stencil nodes (flat index), weights and offsets ``x_i - x_p`` (m), as :func:`kernels.stencil`."""
+    inv = 1.0 / dx
+    base = (x_m * inv - 0.5).astype(np.int64)
+    fx = x_m * inv - base
+    w1 = np.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2], axis=1)  # (n, 3 nodes, 3 axes)
+    off = np.array([(a, b, c) for a in range(3) for b in range(3) for c in range(3)])
+    w = w1[:, off[:, 0], 0] * w1[:, off[:, 1], 1] * w1[:, off[:, 2], 2]
+    r = (off[None, :, :] - fx[:, None, :]) * dx
+    ijk = base[:, None, :] + off[None]
+    ny, nz = grid_shape[1], grid_shape[2]
+    flat = (ijk[..., 0] * ny + ijk[..., 1]) * nz + ijk[..., 2]
+    return flat, w, r
+
+
+@wp.kernel
+def restrict_force(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int, ndim=2), node_share: wp.array(dtype=float, ndim=2),
+                   centre: wp.array(dtype=wp.vec3), inv_len: wp.array(dtype=float), force_sum: wp.array(dtype=wp.vec3, ndim=3),
+                   dx: float, affine: int, slots: wp.array(dtype=float, ndim=2)):
+    """``g = Z^T f``: each group's share of the nodal force impulse as a net force (3) and either a torque about its
+    centre (3, ``affine`` 0) or the force's first moment ``f y^T`` (9, ``affine`` 1), ``y`` the node's offset from the
+    centre over the group's radius of gyration; into ``slots[stride g + c, node % SLOTS]``. One thread an active node."""
+    a = wp.tid()
+    n = nodes[a]
+    ny = force_sum.shape[1]
+    nz = force_sum.shape[2]
+    i = n // (ny * nz)
+    j = (n // nz) % ny
+    k = n % nz
+    f = force_sum[i, j, k]
+    xi = wp.vec3(float(i), float(j), float(k)) * dx
+    slot = a % slots.shape[1]
+    stride = 6 + 6 * affine
+    for q in range(node_share.shape[1]):
+        s = node_share[a, q]
+        if s > 0.0:
+            g = node_group[a, q]
+            t = s * f
+            y = (xi - centre[g]) * inv_len[g]
+            for c in range(3):
+                wp.atomic_add(slots, stride * g + c, slot, t[c])
+            if affine == 0:
+                m = wp.cross(y, t)
+                for c in range(3):
+                    wp.atomic_add(slots, stride * g + 3 + c, slot, m[c])
+            else:
+                for r in range(3):
+                    for c in range(3):
+                        wp.atomic_add(slots, stride * g + 3 + 3 * r + c, slot, t[r] * y[c])
+
+
+@wp.kernel
+def reduce_slots(slots: wp.array(dtype=float, ndim=2), g: wp.array(dtype=float)):
+    """``g[l]`` = the sum of row ``l`` of the slots (cleared for the next step); one thread a coarse mode."""
+    l = wp.tid()
+    acc = float(0.0)
+    for s in range(slots.shape[1]):
+        acc += slots[l, s]
+        slots[l, s] = 0.0
+    g[l] = acc
+
+
+@wp.kernel
+def coarse_matvec(B: wp.array(dtype=float, ndim=2), g: wp.array(dtype=float), y: wp.array(dtype=float)):
+    """``y = B g``; one thread a row."""
+    j = wp.tid()
+    acc = float(0.0)
+    for l in range(B.shape[1]):
+        acc += B[j, l] * g[l]
+    y[j] = acc
+
+
+@wp.kernel
+def prolong_velocity(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int, ndim=2), node_share: wp.array(dtype=float, ndim=2),
+                     centre: wp.array(dtype=wp.vec3), inv_len: wp.array(dtype=float), y: wp.array(dtype=float),
+                     damping: wp.array(dtype=float), dx: float, affine: int, grid_v: wp.array(dtype=wp.vec3, ndim=3)):
+    """``v += damping Z y``: each group's share of its boosted rigid (or affine) velocity change at an active node."""
+    a = wp.tid()
+    n = nodes[a]
+    ny = grid_v.shape[1]
+    nz = grid_v.shape[2]
+    i = n // (ny * nz)
+    j = (n // nz) % ny
+    k = n % nz
+    xi = wp.vec3(float(i), float(j), float(k)) * dx
+    dv = wp.vec3(0.0)
+    hit = int(0)
+    stride = 6 + 6 * affine
+    for q in range(node_share.shape[1]):
+        s = node_share[a, q]
+        if s > 0.0:
+            g = node_group[a, q]
+            b = stride * g
+            r = (xi - centre[g]) * inv_len[g]
+            v = wp.vec3(y[b], y[b + 1], y[b + 2])
+            if affine == 0:
+                v += wp.cross(wp.vec3(y[b + 3], y[b + 4], y[b + 5]), r)
+            else:
+                Y = wp.mat33(y[b + 3], y[b + 4], y[b + 5], y[b + 6], y[b + 7], y[b + 8], y[b + 9], y[b + 10], y[b + 11])
+                v += Y * r
+            dv += s * v
+            hit = 1
+    if hit != 0:
+        grid_v[i, j, k] = grid_v[i, j, k] + damping[0] * dv
+
+
+class RigidModeAccelerator:
+    """The coarse level of the relaxation (module docstring) for one :class:`MPMModel`; :meth:`build` it for a
+    frame's drive, then :meth:`correct` adds its velocity change in every step (:meth:`MPMSolver.step
+    <warpmpm.solver.MPMSolver.step>` calls it between the grid update and G2P).
+
+    ``modes``: ``"rigid"`` (6 a group) or ``"affine"`` (12); ``aggregate_mm``: the cubes organs are cut into (None:
+    whole organs); ``target_factor``: :data:`TARGET_FACTOR`.
+
+    Attributes after :meth:`build`: ``frequencies_per_s`` (the coarse modes' own ``omega_j``), ``boosts``
+    (``beta_j``), ``target_per_s`` (``omega_t``), ``layout`` (increases whenever the device arrays were re-allocated:
+    a captured graph that launched the old ones must be captured again)."""
+
+    def __init__(self, model: MPMModel, target_factor: float = TARGET_FACTOR, modes: str = "rigid",
+                 aggregate_mm: float | None = AGGREGATE_MM):
+        if model.n_fields > 1:
+            raise InputError("the rigid-mode acceleration handles sticky contact only (one grid field); use "
+                             "SolverConfig(contact='sticky') or turn it off (SolverConfig.rigid_mode_acceleration='off')")
+        if not (isinstance(target_factor, (int, float)) and math.isfinite(target_factor) and target_factor > 0):
+            raise InputError(f"rigid-mode target factor must be a finite number > 0, got {target_factor!r}")
+        if modes not in ("rigid", "affine"):
+            raise InputError(f"rigid-mode acceleration modes must be 'rigid' or 'affine', got {modes!r}")
+        self.model = model
+        #: the group of each particle whose motions form the coarse space
+        self.groups = aggregate_groups(model.particles, aggregate_mm)
+        self.n_groups = int(self.groups.max()) + 1
+        self.affine = modes == "affine"
+        self.stride = 12 if self.affine else 6
+        self.target_factor = float(target_factor)
+        size_m = float(np.max(np.ptp(model.particles.positions_mm, axis=0))) * 1e-3
+        #: the coarse modes' target frequency (rad/s): the slowest deformation of the body, ``pi c / L``
+        self.target_per_s = self.target_factor * math.pi * model.wave_speed_m_s / max(size_m, 10 * model.dx_mm * 1e-3)
+        self.frequencies_per_s = np.zeros(0)
+        self.boosts = np.zeros(0)
+        self.layout = 0
+        self._capacity = 0
+        self._built = False
+        d = model.device
+        k = self.stride * self.n_groups
+        self._B = wp.zeros((k, k), dtype=float, device=d)
+        self._slots = wp.zeros((k, SLOTS), dtype=float, device=d)
+        self._g = wp.zeros(k, dtype=float, device=d)
+        self._y = wp.zeros(k, dtype=float, device=d)
+        self._centre = wp.zeros(self.n_groups, dtype=wp.vec3, device=d)
+        self._inv_len = wp.zeros(self.n_groups, dtype=float, device=d)
+        self._dx = model.dx_mm * 1e-3
+
+    @property
+    def built(self) -> bool:
+        return self._built
+
+    def coarse_matrices(self, state: State, driven: np.ndarray, axes: np.ndarray, spring_per_s2: float) -> dict:
+        """The coarse space at ``state``: the node table (active nodes, their groups and shares), the groups' centres and
+        radii, and the matrices ``E = Z^T K Z`` (N/m) and ``M_c = Z^T M Z`` (kg) over the groups' modes (``stride``
+        per group, in group order). ``spring_per_s2``: the drive's spring per kg of each driven particle (the PD
+        drive's ``Kp``) along ``axes`` (n_driven, 3, 3) of the ``driven`` particles."""
+        m = self.model
+        dx = self._dx
+        G, S = self.n_groups, self.stride
+        K = G * S
+        nn = int(np.prod(m.grid_shape))
+        x = state.x.numpy().astype(np.float64)
+        mass = m.mass_kg.astype(np.float64)
+        flat, w, r = _stencils(x, dx, m.grid_shape)
+        n = m.n
+        grp = self.groups
+        # the node table: each group's share of each node's mass
+        key = (flat * G + grp[:, None]).ravel()
+        uk, inv = np.unique(key, return_inverse=True)
+        gm = np.bincount(inv.ravel(), weights=(w * mass[:, None]).ravel())
+        node_of, group_of = uk // G, (uk % G).astype(np.int64)
+        nodes, node_pos = np.unique(node_of, return_inverse=True)
+        node_pos = node_pos.ravel()
+        node_mass = np.bincount(node_pos, weights=gm)
+        share = gm / node_mass[node_pos]
+        ijk = np.stack([nodes // (m.grid_shape[1] * m.grid_shape[2]), (nodes // m.grid_shape[2]) % m.grid_shape[1],
+                        nodes % m.grid_shape[2]], axis=1)
+        wall = m.config.wall_cells
+        inside = np.all((ijk >= wall) & (ijk < np.asarray(m.grid_shape) - wall), axis=1)
+        share[~inside[node_pos]] = 0.0
+        # keep the NODE_GROUPS largest shares of each node
+        order = np.lexsort((-share, node_pos))
+        rank = np.empty_like(order)
+        first = np.r_[0, np.flatnonzero(np.diff(node_pos[order])) + 1]
+        counts = np.diff(np.r_[first, order.size])
+        rank[order] = np.arange(order.size) - np.repeat(first, counts)
+        share[rank >= NODE_GROUPS] = 0.0
+        na = nodes.size
+        node_group = np.zeros((na, NODE_GROUPS), dtype=np.int32)
+        node_share = np.zeros((na, NODE_GROUPS), dtype=np.float64)
+        sel = rank < NODE_GROUPS
+        node_group[node_pos[sel], rank[sel]] = group_of[sel]
+        node_share[node_pos[sel], rank[sel]] = share[sel]
+        Xn = ijk * dx
+        # each group's centre and radius of gyration over the nodes it has a share of
+        wsum = np.bincount(group_of, weights=share, minlength=G)
+        if np.any(wsum <= 0):
+            raise InputError("rigid-mode acceleration: a group of particles has no grid node of its own (all in the wall "
+                             "layer?); increase SolverConfig.margin_mm or turn it off")
+        centre = np.stack([np.bincount(group_of, weights=share * Xn[node_pos, c], minlength=G) for c in range(3)], axis=1) / wsum[:, None]
+        d2 = ((Xn[node_pos] - centre[group_of]) ** 2).sum(1)
+        radius = np.maximum(np.sqrt(np.bincount(group_of, weights=share * d2, minlength=G) / wsum), dx)
+        a_c, A_c = _basis(self.affine)
+        # M_c: per (node, group) the mode values Z = s (a + A y); pairs of groups at a node
+        y_ng = (Xn[node_pos] - centre[group_of]) / radius[group_of, None]
+        Zv = share[:, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y_ng))  # (entries, S, 3)
+        Mc = self._pair_sum(node_pos, group_of, Zv, Zv, node_mass[node_pos], K)
+        # E: per (particle, group) the moments of the group's share over the particle's stencil
+        pos_of_node = np.full(nn, -1, dtype=np.int64)
+        pos_of_node[nodes] = np.arange(na)
+        npos = pos_of_node[flat]  # (n, 27)
+        rows_p, rows_k, rows_q = [], [], []
+        for q in range(NODE_GROUPS):
+            s_q = node_share[npos, q]
+            p_i, k_i = np.nonzero(s_q > 0)
+            rows_p.append(p_i)
+            rows_k.append(k_i)
+            rows_q.append(np.full(p_i.size, q))
+        rp, rk, rq = (np.concatenate(v) for v in (rows_p, rows_k, rows_q))
+        na_i = npos[rp, rk]
+        g_r = node_group[na_i, rq].astype(np.int64)
+        s_r = node_share[na_i, rq] * w[rp, rk]
+        y_r = (Xn[na_i] - centre[g_r]) / radius[g_r, None]
+        off = r[rp, rk]
+        pkey, pinv = np.unique(rp * G + g_r, return_inverse=True)
+        pinv = pinv.ravel()
+        ne = pkey.size
+
+        def moment(vals):
+            return np.bincount(pinv, weights=vals, minlength=ne)
+
+        n0 = moment(s_r)
+        n1 = np.stack([moment(s_r * y_r[:, c]) for c in range(3)], axis=1)
+        m0 = np.stack([moment(s_r * off[:, c]) for c in range(3)], axis=1)
+        m1 = np.stack([np.stack([moment(s_r * y_r[:, i] * off[:, j]) for j in range(3)], axis=1) for i in range(3)], axis=1)
+        u = a_c[None] * n0[:, None, None] + np.einsum("cij,ej->eci", A_c, n1)  # (ne, S, 3)
+        c4 = 4.0 / dx**2
+        Gm = c4 * (a_c[None, :, :, None] * m0[:, None, None, :] + np.matmul(A_c[None], m1[:, None]))  # (ne, S, 3, 3)
+        p_e = pkey // G
+        g_e = pkey % G
+        vol = m.vol0.numpy().astype(np.float64)[p_e]
+        mu = m.mu.numpy().astype(np.float64)[p_e]
+        lam = m.lam.numpy().astype(np.float64)[p_e]
+        pen = np.zeros(n)
+        P = np.zeros((n, 3, 3))
+        driven = np.asarray(driven, dtype=np.int64)
+        pen[driven] = spring_per_s2 * mass[driven]
+        P[driven] = np.asarray(axes, dtype=np.float64)
+        # E = sum_p Q_p^T Q_p with Q_p (10 rows a particle) the square root of its energy: strain components weighed
+        # by sqrt(2 mu V) (diagonal) and sqrt(4 mu V) (off-diagonal, counted twice), the trace by sqrt(lambda V), the
+        # driven directions by sqrt(spring) (a projector P: (P u).(P u) = u.P u)
+        eps = 0.5 * (Gm + np.swapaxes(Gm, 2, 3))
+        sd = np.sqrt(2.0 * mu * vol)[:, None]
+        so = np.sqrt(4.0 * mu * vol)[:, None]
+        Q = np.empty((ne, 10, S))
+        Q[:, 0], Q[:, 1], Q[:, 2] = sd * eps[:, :, 0, 0], sd * eps[:, :, 1, 1], sd * eps[:, :, 2, 2]
+        Q[:, 3], Q[:, 4], Q[:, 5] = so * eps[:, :, 0, 1], so * eps[:, :, 0, 2], so * eps[:, :, 1, 2]
+        Q[:, 6] = np.sqrt(lam * vol)[:, None] * np.trace(Gm, axis1=2, axis2=3)
+        Q[:, 7:10] = np.sqrt(pen[p_e])[:, None, None] * np.einsum("eab,ecb->eac", P[p_e], u)
+        order = np.argsort(p_e, kind="stable")
+        p_sorted = p_e[order]
+        starts = np.r_[0, np.flatnonzero(np.diff(p_sorted)) + 1]
+        cnt = np.diff(np.r_[starts, p_sorted.size])
+        E = np.zeros(K * K)
+        ar = np.arange(S)
+        for c in np.unique(cnt):
+            ent = order[starts[cnt == c][:, None] + np.arange(c)[None]]  # (particles, c) entries of each particle
+            Qc = np.concatenate([Q[ent[:, q]] for q in range(c)], axis=2)  # (particles, 10, c S)
+            blocks = np.swapaxes(Qc, 1, 2) @ Qc  # (particles, c S, c S)
+            # particles with the same groups add into the same entries of E: sum them first (fewer scattered values)
+            sets, which = np.unique(g_e[ent], axis=0, return_inverse=True)
+            which = which.ravel()
+            by = np.argsort(which, kind="stable")
+            first = np.r_[0, np.flatnonzero(np.diff(which[by])) + 1]
+            blocks = np.add.reduceat(blocks[by], first, axis=0)
+            modes = ((sets * S)[:, :, None] + ar[None, None, :]).reshape(sets.shape[0], c * S)
+            idx = modes[:, :, None] * K + modes[:, None, :]
+            E += np.bincount(idx.ravel(), weights=blocks.ravel(), minlength=K * K)
+        E = E.reshape(K, K)
+        E = 0.5 * (E + E.T)
+        return {"nodes": nodes, "node_group": node_group, "node_share": node_share, "centre": centre, "radius": radius,
+                "E": E, "Mc": Mc, "node_mass": node_mass}
+
+    @staticmethod
+    def _pair_sum(node_pos, group_of, Za, Zb, weight, K):
+        """``sum over nodes of weight * Za(g1)^T Zb(g2)`` for every pair of groups at a node, as a (K, K) matrix."""
+        S = Za.shape[1]
+        order = np.argsort(node_pos, kind="stable")
+        ns = node_pos[order]
+        starts = np.r_[0, np.flatnonzero(np.diff(ns)) + 1]
+        cnt = np.diff(np.r_[starts, ns.size])
+        idx_all, val_all = [], []
+        ar = np.arange(S)
+        for c in np.unique(cnt):
+            ent = order[starts[cnt == c][:, None] + np.arange(c)[None]]
+            for i1 in range(c):
+                for i2 in range(c):
+                    ea, eb = ent[:, i1], ent[:, i2]
+                    val = weight[ea, None, None] * (Za[ea] @ np.swapaxes(Zb[eb], 1, 2))
+                    idx_all.append((((group_of[ea] * S)[:, None, None] + ar[None, :, None]) * K + (group_of[eb] * S)[:, None, None]
+                                    + ar[None, None, :]).ravel())
+                    val_all.append(val.ravel())
+        out = np.bincount(np.concatenate(idx_all), weights=np.concatenate(val_all), minlength=K * K)
+        out = out.reshape(K, K)
+        return 0.5 * (out + out.T)
+
+    def build(self, state: State, driven: np.ndarray, axes: np.ndarray, spring_per_s2: float) -> None:
+        """The coarse space and its boost for the particles at ``state`` under the frame's drive (see
+        :meth:`coarse_matrices`), uploaded for :meth:`correct`."""
+        c = self.coarse_matrices(state, driven, axes, spring_per_s2)
+        E, Mc = c["E"], c["Mc"]
+        S, G = self.stride, self.n_groups
+        K = S * G
+        # E phi = omega^2 Mc phi through the Cholesky factor of Mc (positive definite: every group has mass on its nodes)
+        Lc = np.linalg.cholesky(Mc)
+        Li = np.linalg.inv(Lc)
+        w2, V = np.linalg.eigh(Li @ E @ Li.T)
+        Phi = Li.T @ V
+        w2 = np.maximum(w2, 0.0)
+        target2 = self.target_per_s**2
+        boosts = np.where(w2 < target2, np.minimum(target2 / np.maximum(w2, 1e-300), MAX_BOOST), 1.0)
+        B = Phi @ np.diag(boosts - 1.0) @ Phi.T
+        self.frequencies_per_s = np.sqrt(w2)
+        self.boosts = boosts
+        d = self.model.device
+        na = c["nodes"].size
+        if na > self._capacity:  # room for the table to grow by a fifth before the arrays (and a graph) change
+            self._capacity = int(math.ceil(na * 1.2))
+            self._nodes = wp.zeros(self._capacity, dtype=int, device=d)
+            self._node_group = wp.zeros((self._capacity, NODE_GROUPS), dtype=int, device=d)
+            self._node_share = wp.zeros((self._capacity, NODE_GROUPS), dtype=float, device=d)
+            self.layout += 1
+        pad = self._capacity - na
+        self._nodes.assign(np.r_[c["nodes"], np.zeros(pad, dtype=np.int64)].astype(np.int32))
+        self._node_group.assign(np.r_[c["node_group"], np.zeros((pad, NODE_GROUPS), dtype=np.int32)])
+        self._node_share.assign(np.r_[c["node_share"], np.zeros((pad, NODE_GROUPS))].astype(np.float32))
+        self._centre.assign(c["centre"].astype(np.float32))
+        self._inv_len.assign((1.0 / c["radius"]).astype(np.float32))
+        self._B.assign(B.astype(np.float32).reshape(K, K))
+        self._slots.zero_()
+        self._built = True
+
+    def correct(self, force_sum: wp.array, damping: wp.array, grid_v: wp.array) -> None:
+        """Add ``damping Z B Z^T f`` to the grid velocities (``force_sum``: the step's nodal force impulse, N s)."""
+        if not self._built:
+            return
+        d = self.model.device
+        a = int(self.affine)
+        k = self._g.shape[0]
+        wp.launch(restrict_force, self._capacity, [self._nodes, self._node_group, self._node_share, self._centre, self._inv_len,
+                                                   force_sum, self._dx, a, self._slots], device=d)
+        wp.launch(reduce_slots, k, [self._slots, self._g], device=d)
+        wp.launch(coarse_matvec, k, [self._B, self._g, self._y], device=d)
+        wp.launch(prolong_velocity, self._capacity, [self._nodes, self._node_group, self._node_share, self._centre, self._inv_len,
+                                                     self._y, damping, self._dx, a, grid_v], device=d)
