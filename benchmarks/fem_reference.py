@@ -1,7 +1,8 @@
 """The MPM equilibrium against an independent finite-element solve (issue 17): one axial slice of a block
 scaled 1.05, rotated 3 degrees or sheared 3 degrees in plane, everything else free.
 
-    python benchmarks/fem_reference.py [--size 20,20,21] [--ppc-sweep | --grid-shift | --quasistatic | --fem-convergence]
+    python benchmarks/fem_reference.py [--size 20,20,21] [--ppc-sweep | --grid-shift | --quasistatic | --fem-convergence
+                                        | --acceleration]
 
 Scenes: a soft (pancreas) block, a bonded pancreas + left kidney block and a pancreas + duodenum block
 (~3000x stiffer), 2 mm particles. The FEM
@@ -14,7 +15,9 @@ the answer drift?). ``--grid-shift``: the soft block moved by 0, 1/4 and 1/2 cel
 run, with the time ratio. ``--fem-convergence``: how far the reference is from its own continuum limit: the FEM on
 the particles' mesh against the FEM on meshes 2 and 3 times finer (``--levels``), the settled MPM against each, and
 with three levels the observed order of convergence and every answer against the Richardson-extrapolated
-continuum (a difference below the reference's own cannot be resolved by it). ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
+continuum (a difference below the reference's own cannot be resolved by it). ``--acceleration``: the settled mode
+with and without its rigid-mode acceleration (:mod:`warpmpm.rigid_modes`), on the three blocks and two more where a
+stiff block (duodenum, kidney) hangs on the pancreas block, 3 layers above the driven slice, nothing driving it. ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
 and 8 particles per cell, with the error by distance from the slice (in-plane and through-plane parts).
 """
 
@@ -34,7 +37,7 @@ import warp as wp  # noqa: E402
 
 from warpmpm.driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator  # noqa: E402
 from warpmpm.fem import fem_displacement_mm  # noqa: E402
-from warpmpm.scenes import block_model, merge_models  # noqa: E402
+from warpmpm.scenes import block_model, inclusion_model, merge_models  # noqa: E402
 from warpmpm.slices import DrivingSlice, InPlaneAffine  # noqa: E402
 from warpmpm.solver import SolverConfig  # noqa: E402
 from warpmpm.targets import affine_targets  # noqa: E402
@@ -59,6 +62,10 @@ RULES = [("default stop", SolverConfig(device="cpu"), ConvergenceConfig(), None)
 SOLVERS = [("settled, explicit (adaptive damping, PD)", SolverConfig(device="cpu"), SETTLED, None),
            ("quasi-static (Newton / CG)", SolverConfig(device="cpu", method="quasistatic"), ConvergenceConfig(), None)]
 
+#: the settled mode without and with its rigid-mode acceleration (``--acceleration``)
+ACCELERATION = [("settled, no acceleration", SolverConfig(device="cpu", rigid_mode_acceleration="off"), SETTLED, None),
+                ("settled, rigid-mode acceleration (default)", SolverConfig(device="cpu"), SETTLED, None)]
+
 
 def scenes(size):
     nx, ny, nz = size
@@ -68,6 +75,14 @@ def scenes(size):
     duodenum = block_model((nx - nx // 2, ny, nz), (2.0, 2.0, 2.0), "duodenum", origin_mm=(2.0 * (nx // 2), 0.0, 0.0))
     return {"pancreas block": soft, "pancreas + kidney (bonded)": merge_models(half, kidney),
             "pancreas + duodenum (~3000x)": merge_models(half, duodenum)}
+
+
+def hanging_scenes(size):
+    """A stiff block in one upper corner of the pancreas block (half its width, from 3 layers above the driven middle
+    slice to the top): it hangs on the soft block, nothing drives it."""
+    nx, ny, nz = size
+    box = ((nx // 2, nx), (0, ny), ((nz - 1) // 2 + 3, nz))
+    return {f"pancreas + hanging {o} ({r})": inclusion_model(size, box, inclusion=o) for o, r in (("duodenum", "~3000x"), ("left_kidney", "66x"))}
 
 
 def compare(model, load, rule):
@@ -103,6 +118,7 @@ def main(argv=None):
     p.add_argument("--ppc-sweep", action="store_true", help="only the particles-per-cell sweep of the scaled soft block")
     p.add_argument("--grid-shift", action="store_true", help="only the soft block moved by 0, 1/4 and 1/2 cell against the grid")
     p.add_argument("--quasistatic", action="store_true", help="only the settled mode's explicit solver against the quasi-static one")
+    p.add_argument("--acceleration", action="store_true", help="only the settled mode with and without its rigid-mode acceleration")
     p.add_argument("--fem-convergence", action="store_true",
                    help="the FEM on the particles' mesh against finer ones (--levels), and the settled MPM against each")
     p.add_argument("--levels", default="1,2", help="--fem-convergence: mesh refinements (1,2 or 1,2,3: with three, the "
@@ -120,20 +136,22 @@ def main(argv=None):
     if a.fem_convergence:
         return fem_convergence(size, tuple(int(v) for v in a.levels.split(",")), a.scenes and a.scenes.split(","),
                                a.loads and a.loads.split(","))
-    rules = SOLVERS if a.quasistatic else RULES
+    rules = SOLVERS if a.quasistatic else ACCELERATION if a.acceleration else RULES
+    ratio_name = "quasi-static / explicit" if a.quasistatic else "with / without" if a.acceleration else None
     rows = []
-    print("| scene | load | " + " | ".join(r[0] for r in rules) + (" | time, quasi-static / explicit |" if a.quasistatic else " |"))
-    print("|---|---|" + "---|" * (len(rules) + int(a.quasistatic)))
-    for sname, model in scenes(size).items():
+    print("| scene | load | " + " | ".join(r[0] for r in rules) + (f" | time, {ratio_name} |" if ratio_name else " |"))
+    print("|---|---|" + "---|" * (len(rules) + int(ratio_name is not None)))
+    all_scenes = {**scenes(size), **(hanging_scenes(size) if a.acceleration else {})}
+    for sname, model in all_scenes.items():
         for lname, load in LOADS.items():
             res = [compare(model, load, rule) for rule in rules]
             rows.append({"scene": sname, "load": lname, "particles": model.n,
                          "results": {rule[0]: r for rule, r in zip(rules, res)}})
             cells = " | ".join(f"{100 * r['rel_l2']:.1f} % ({r['steps']} {'iterations' if r['method'] == 'quasistatic' else 'steps'}, "
                                f"{r['wall_s']:.1f} s)" for r in res)
-            ratio = f" | {res[1]['wall_s'] / res[0]['wall_s']:.2f}" if a.quasistatic else ""
+            ratio = f" | {res[1]['wall_s'] / res[0]['wall_s']:.2f}" if ratio_name else ""
             print(f"| {sname} | {lname} | {cells}{ratio} |", flush=True)
-    raw.save("fem_quasistatic" if a.quasistatic else "fem_reference", rows)
+    raw.save("fem_quasistatic" if a.quasistatic else "fem_acceleration" if a.acceleration else "fem_reference", rows)
 
 
 def _extrapolate(u):

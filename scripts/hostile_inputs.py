@@ -141,6 +141,13 @@ def cases(d):
                                                    "MPMModel(m, SolverConfig(device='cpu', cell_size_mm=1.0))"], "error"),
         ("less than one particle layer a cell (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; "
                                                        "SolverConfig(min_layers_per_cell=0.5)"], "error"),
+        ("an unknown rigid-mode acceleration (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; "
+                                                      "SolverConfig(rigid_mode_acceleration='yes')"], "error"),
+        ("rigid-mode acceleration forced on with sliding contact (API)",
+         ["python", "-c", "from warpmpm.solver import SolverConfig; SolverConfig(rigid_mode_acceleration='on', contact='sliding')"],
+         "error"),
+        ("a negative rigid-mode cube (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; "
+                                              "SolverConfig(rigid_mode_aggregate_mm=-5.0)"], "error"),
     ]
 
 

@@ -48,7 +48,7 @@ def test_a_stiff_block_hanging_on_a_soft_one_settles_where_the_fem_puts_it():
     """The duodenum's block (~3,000x the pancreas's modulus, as heavy as stiff under mass scaling) swings on the soft
     pancreas so slowly that the settled rule, which watches how far the body moved in the last 100 steps, is fooled:
     measured without the acceleration, 'settled' after 500 steps with the block moved 0.013 mm of the FEM's 0.48
-    (50 % off overall, 97 % on the block). With it: 400 steps, 2.6 % (block 2.7 %)."""
+    (50 % off overall, 97 % on the block). With it (from the slice's arrival on): 600 steps, 3.0 % (block 3.2 %)."""
     m, sl, idx, tg = hanging("duodenum")
     r, rel, rel_stiff = settled_error(m, sl, idx, tg, "auto")
     assert r.settled
@@ -58,14 +58,15 @@ def test_a_stiff_block_hanging_on_a_soft_one_settles_where_the_fem_puts_it():
 
 
 def test_the_acceleration_leaves_the_equilibrium_where_it_was():
-    """With a kidney's block (66x) both settle truly (without: 1,300 steps, 3.9 % from the FEM; with: 400 steps,
-    2.6 %): the preconditioner changes how fast the body gets there, not where it goes."""
+    """With a kidney's block (66x) both settle truly (without: 1,300 steps, 3.9 % from the FEM; with: 700 steps,
+    2.9 %): the preconditioner changes how fast the body gets there, not where it goes."""
     m, sl, idx, tg = hanging("left_kidney")
     r_off, rel_off, _ = settled_error(m, sl, idx, tg, "off")
     r_on, rel_on, _ = settled_error(m, sl, idx, tg, "auto")
     assert r_off.settled and r_on.settled
     assert rel_off < 0.06 and rel_on < 0.04, (rel_off, rel_on)
-    assert r_on.steps <= 0.5 * r_off.steps, (r_on.steps, r_off.steps)
+    assert r_on.steps <= 0.6 * r_off.steps, (r_on.steps, r_off.steps)
+    assert r_on.acceleration.startswith("from step") and "switched off" not in r_on.acceleration
     move = np.linalg.norm(r_off.positions_mm - m.positions_mm, axis=1).mean()
     assert np.linalg.norm(r_on.positions_mm - r_off.positions_mm, axis=1).mean() < 0.1 * move
 
@@ -131,3 +132,24 @@ def test_bad_acceleration_settings_are_refused(tiny_model):
         SolverConfig(rigid_mode_acceleration="on", contact="sliding")
     with pytest.raises(InputError, match="aggregate size"):
         aggregate_groups(tiny_model, -5.0)
+
+
+def test_the_guard_switches_an_exponentially_growing_coarse_level_off_and_leaves_a_ringing_one_on():
+    """A boosted mode swings at the target frequency (a few % change a step); growth by more than GUARD_GROWTH a step for
+    GUARD_STEPS steps in a row is an instability (the paper protocol's case in warpmpm.rigid_modes)."""
+    from warpmpm.rigid_modes import GUARD_GROWTH, GUARD_STEPS, coarse_guard
+
+    def run(series):
+        guard = wp.array(np.array([0.0, 0.0, 1.0, -1.0, 0.0]), dtype=float, device="cpu")
+        y = wp.zeros(4, dtype=float, device="cpu")
+        for v in series:
+            y.assign(np.array([v, -0.5 * v, 0.0, 0.1 * v]))
+            wp.launch(coarse_guard, 1, [y, guard, GUARD_GROWTH, float(GUARD_STEPS)], device="cpu")
+        return guard.numpy()
+
+    ringing = [abs(math.cos(0.04 * k)) * math.exp(-0.01 * k) + 0.3 for k in range(400)]
+    assert run(ringing)[2] == 1.0
+    growing = [0.1] * 20 + [0.1 * 1.4**k for k in range(1, 12)]
+    g = run(growing)
+    assert g[2] == 0.0 and g[3] == 20 + GUARD_STEPS
+    assert run([0.1] * 20 + [0.1 * 1.4**k for k in range(1, GUARD_STEPS)])[2] == 1.0  # one step short: still on

@@ -37,7 +37,7 @@ from .errors import InputError, SimulationError
 from .model import ParticleModel
 from .slices import DrivingSlice, driven_indices
 from .quasistatic import QuasiStaticSolver
-from .rigid_modes import RigidModeAccelerator
+from .rigid_modes import GUARD_GROWTH, GUARD_STEPS, RigidModeAccelerator
 from .solver import MPMModel, MPMSolver, SolverConfig
 
 
@@ -117,6 +117,8 @@ class ConvergenceMonitor:
         self.reason: str | None = None
         self.body_motion_mm: float = float("nan")
         self._previous_motion_mm: float = float("nan")
+        #: the residual rule has held once (where the default rule stops): the driven slice has arrived
+        self.arrived = False
 
     @property
     def settled(self) -> bool:
@@ -158,6 +160,8 @@ class ConvergenceMonitor:
             self.reason = "threshold"
         elif self.same >= c.th_s:
             self.reason = "stagnation" if rms_mm <= self.stall_mm else "stalled"
+        if self.reason is not None:
+            self.arrived = True
         if self.reason is not None and c.wait_settled and not self.settled:
             self.reason = None  # the driven slice has converged; the body has not settled yet
         if self.reason is None and self.steps >= c.max_steps:
@@ -297,7 +301,9 @@ class DriveResult:
     method (``SolverConfig.method``). With the quasi-static method, ``steps`` counts Newton iterations,
     ``linear_iterations`` their conjugate-gradient iterations (each costs about half an explicit step), the residual
     histories have one entry per Newton iteration, ``reason`` is ``"settled"`` or ``"max_iterations"`` and
-    ``body_motion_mm`` is the largest particle move of the last iteration.
+    ``body_motion_mm`` is the largest particle move of the last iteration. ``acceleration``: whether the rigid-mode
+    acceleration ran (:attr:`SolverConfig.rigid_mode_acceleration`): ``"none"``, ``"from step N"`` (once the slice had
+    arrived), with ``", switched off at step M"`` when its guard found it unstable.
     """
 
     positions_mm: np.ndarray
@@ -313,6 +319,7 @@ class DriveResult:
     min_det_f: float = float("nan")
     method: str = "explicit"
     linear_iterations: int = 0
+    acceleration: str = "none"
 
     @property
     def final_rel_residual(self) -> float:
@@ -373,7 +380,7 @@ class SliceDrivenEstimator:
         acc = self.mpm.config.rigid_mode_acceleration
         self.accelerator = None
         if self.mpm.config.method != "quasistatic" and (acc == "on" or (acc == "auto" and settle and self.mpm.n_fields == 1)):
-            self.accelerator = RigidModeAccelerator(self.mpm)
+            self.accelerator = RigidModeAccelerator(self.mpm, aggregate_mm=self.mpm.config.rigid_mode_aggregate_mm)
             self.solver.set_accelerator(self.accelerator)
         d = self.mpm.device
         self.state = self.mpm.state()
@@ -515,11 +522,11 @@ class SliceDrivenEstimator:
         self._force.zero_()
         self.solver.reset_damping()
         g = self.gains
-        if self.accelerator is not None:  # the coarse modes of this frame's drive, from where the frame starts
-            layout = self.accelerator.layout
-            self.accelerator.build(self.state, self.driven, axes, g.kp_per_s2)
-            if self.accelerator.layout != layout:
-                self._graph = None  # the captured launches point at the accelerator's old arrays
+        accelerating = False
+        switched_off = None
+        if self.accelerator is not None and self.accelerator.active:  # a new frame starts without it (below)
+            self.accelerator.suspend()
+            self._graph = None
         rel_hist, rms_hist = [], []
         t0 = time.perf_counter()
         done = False
@@ -541,15 +548,42 @@ class SliceDrivenEstimator:
                 if conv.update(rel, rms_hist[-1]):
                     done = True
                     break
+            if accelerating and self.accelerator.active and switched_off is None:
+                switched_off = self.accelerator.switched_off_after()
+                if switched_off is not None:  # the guard turned the correction off: stop scattering the force for it too
+                    self.accelerator.suspend()
+                    self._graph = None
+            if self.accelerator is not None and not accelerating and conv.arrived and not done:
+                # the slice has arrived: from here the body settles, and its slow coarse modes are accelerated. Not
+                # before: while the drive still saturates, a boosted coarse mode would be thrown by it (measured: the
+                # stomach, held by 6 driven particles, left the grid under the paper protocol's 12 mm slice motion)
+                layout = self.accelerator.layout
+                self.accelerator.build(self.state, self.driven, axes, g.kp_per_s2)
+                accelerating = True
+                accel_from = step
+                if self.accelerator.layout != layout or self.accelerator.active:
+                    self._graph = None  # the captured launches point at the old arrays, or do not run the coarse level
         self.solver.check()
         wall = time.perf_counter() - t0
         self._force.zero_()
         self.frames += 1
+        acceleration = "none"
+        if accelerating:
+            if switched_off is None and self.accelerator.active:
+                switched_off = self.accelerator.switched_off_after()
+            acceleration = (f"from step {accel_from}" if self.accelerator.active or switched_off is not None
+                            else "none (no coarse mode slower than the body)")
+            off = switched_off
+            if off is not None:
+                acceleration += f", switched off at step {accel_from + off}"
+                warnings.warn(f"the rigid-mode acceleration switched itself off at step {accel_from + off} (its coarse motion "
+                              f"grew by more than {int(100 * (GUARD_GROWTH - 1))} % a step for {GUARD_STEPS} steps: unstable "
+                              "here); the frame went on without it", RuntimeWarning, stacklevel=2)
         # on a GPU the loop runs whole batches of sync_every steps: report the steps actually run
         det = np.linalg.det(self.state.F.numpy().astype(np.float64))
         min_det, collapsed = float(det.min()), float(np.mean(det < 0.1))
         result = DriveResult(self.positions_mm(), self._steps_run(len(rel_hist)), wall, np.asarray(rel_hist), np.asarray(rms_hist),
-                             conv.converged, conv.reason, g, conv.settled, conv.body_motion_mm, min_det)
+                             conv.converged, conv.reason, g, conv.settled, conv.body_motion_mm, min_det, acceleration=acceleration)
         if trial is not None:  # "auto": the quasi-static iterations that came first are part of the frame
             result.method, result.linear_iterations = "quasistatic+explicit", trial.linear_iterations
             result.wall_s += trial.wall_s

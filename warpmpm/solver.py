@@ -111,6 +111,12 @@ class QuasiStaticConfig:
 #: the default phantom's cell grows from 4.4 to 4.5 mm.
 MIN_LAYERS_PER_CELL = 1.5
 
+#: Edge (mm) of the cubes each organ is cut into for the coarse space of the rigid-mode acceleration
+#: (:mod:`warpmpm.rigid_modes`). Measured on the default phantom (a 2 % in-plane scale of its mid-pancreas slice,
+#: settled mode, steps to settle; benchmarks/README.md, "Rigid-mode acceleration"): no acceleration > 8,000 (not
+#: settled), whole organs 4,500, 40 mm 2,200, 25 mm 1,600.
+RIGID_MODE_AGGREGATE_MM = 25.0
+
 
 @dataclass(frozen=True)
 class SolverConfig:
@@ -192,7 +198,10 @@ class SolverConfig:
             their rigid swings on the soft pancreas are what keeps a whole abdomen from settling.
             ``"auto"`` (default): on when a frame waits for the body to settle (``ConvergenceConfig.wait_settled``) and
             the contact is sticky; ``"on"``: also when a frame stops on the driven slice alone (sticky contact only);
-            ``"off"``: never.
+            ``"off"``: never. The coarse space: 25 mm cubes of each organ (``rigid_mode_aggregate_mm``).
+        rigid_mode_aggregate_mm: edge (mm) of the cubes each organ is cut into for the rigid-mode acceleration; None:
+            whole organs. Default :data:`RIGID_MODE_AGGREGATE_MM` (smaller cubes: fewer steps, a longer set-up per frame
+            and more work a step).
         cpu_threads: on the CPU, threads an explicit step splits its particle and grid kernels over
             (:mod:`warpmpm.parallel`: Warp runs each CPU launch on one core, and launches over disjoint
             particle ranges from several threads run at once; each thread scatters into a grid copy of its
@@ -225,6 +234,7 @@ class SolverConfig:
     method: Literal["explicit", "quasistatic", "auto"] = "explicit"
     quasistatic: QuasiStaticConfig = QuasiStaticConfig()
     rigid_mode_acceleration: Literal["auto", "on", "off"] = "auto"
+    rigid_mode_aggregate_mm: float | None = RIGID_MODE_AGGREGATE_MM
     cpu_threads: int | None = None
 
     def __post_init__(self):
@@ -246,6 +256,7 @@ class SolverConfig:
         finite("damping_factor", strict=False)
         finite("friction", strict=False)
         finite("min_layers_per_cell", lo=1.0, strict=False)
+        finite("rigid_mode_aggregate_mm", optional=True)
         if self.damping_rule not in ("auto", "adaptive", "fixed"):
             raise InputError(f"SolverConfig.damping_rule must be 'auto', 'adaptive' or 'fixed', got {self.damping_rule!r}")
         lo_hi = self.damping_bounds
@@ -544,6 +555,9 @@ class MPMSolver:
             self._grid_f = wp.zeros(self.grid_mv.shape, dtype=wp.vec3, device=d)
             self._force_sum = wp.zeros(self.grid_v.shape, dtype=wp.vec3, device=d)
 
+    def _accelerating(self) -> bool:
+        return self.accelerator is not None and self.accelerator.active
+
     def set_driven(self, driven: np.ndarray) -> None:
         """Leave the driven particles out of the adaptive damping's stiffness estimate (their drive is a spring
         of its own, far stiffer than the tissue)."""
@@ -595,7 +609,7 @@ class MPMSolver:
             parallel.run_together(
                 lambda k=k: self._p2g_part(k, x_in[k], v_in[k], C_in[k], F_in[k], f_in[k], [a[k] for a in pv], dt) for k in range(n))
             parallel.run_together(lambda k=k: self._grid_update(*self._node_ranges[k], damping, n) for k in range(n))
-        if self.accelerator is not None:
+        if self._accelerating():
             self.accelerator.correct(self._force_sum, damping, self.grid_v)
         if parts == 1:
             self._g2p_part(0, state_in.x, state_in.x_carry, state_in.F, m.field,
@@ -623,7 +637,7 @@ class MPMSolver:
                                                        k * nx * m.n_fields, self.grid_m, self.grid_mv, self.grid_g], device=m.device)
         else:
             wp.launch(kernels.p2g, x.shape[0], [x, v, C, F, force, mass, vol0, mu, lam, self._dx, dt, k * nx,
-                                                int(self.accelerator is not None), self.grid_m, self.grid_mv, self._grid_f],
+                                                int(self._accelerating()), self.grid_m, self.grid_mv, self._grid_f],
                       device=m.device)
 
     def _grid_update(self, lo, hi, damping, parts):
@@ -636,7 +650,7 @@ class MPMSolver:
                                                         damping, cfg.wall_cells, cfg.friction, self.grid_v], device=m.device)
         else:
             wp.launch(kernels.grid_update, dim, [self.grid_m, self.grid_mv, parts, lo, damping, cfg.wall_cells,
-                                                 int(self.accelerator is not None), self._grid_f, self.grid_v, self._force_sum],
+                                                 int(self._accelerating()), self._grid_f, self.grid_v, self._force_sum],
                       device=m.device)
 
     def _g2p_part(self, k, x, carry, F, field, outs, dt):
