@@ -24,7 +24,7 @@ target ``omega_t`` and 1 for the others. Coarse mode ``j`` then accelerates as i
 it is: it swings at ``omega_t`` instead of ``omega_j``, and the adaptive damping (:attr:`SolverConfig.damping_rule
 <warpmpm.solver.SolverConfig.damping_rule>`) brings it to rest with the rest of the body. A group is a cube of about
 ``aggregate_mm`` of one organ (:func:`aggregate_groups`): with whole organs as groups a stiff organ's bending is still
-slow; with 25 mm cubes the default phantom settles in 1,600 steps instead of 4,500 (benchmarks/README.md).
+slow; with 25 mm cubes the default phantom settles in 1,700 steps instead of 4,700 (benchmarks/README.md).
 
 What it does not change. The equilibrium: where the force vanishes, so does the correction (it preconditions the
 relaxation, it is not physics). Stability: the eigenvalues of the preconditioned stiffness ``(M^-1 + Z B Z^T) K``
@@ -33,6 +33,16 @@ exceed those of ``M^-1 K`` by at most ``max_j (beta_j - 1) omega_j^2 <= omega_t^
 force impulse (stress and drive), scattered apart from the momentum by :func:`warpmpm.kernels.p2g`; ``E`` and ``M_c``
 are assembled particle by particle from the same stencils (:meth:`RigidModeAccelerator.build`), so restriction,
 prolongation and coarse matrix are one consistent ``Z``.
+
+When. :class:`warpmpm.driving.SliceDrivenEstimator` builds the coarse level once the driven slice has arrived (the
+residual rule that ends a frame by default has held) and runs it until the body has settled: while the drive still
+saturates, a boosted mode would be thrown by it. A scene whose slowest coarse mode is within 10x of the body's pace gets none
+(:data:`MIN_BOOST`; no extra work a step). A guard on the device (:func:`coarse_guard`) switches it off for the rest of the frame when its
+velocity change grows like an instability; this happened under the paper protocol's 12 mm slice motion on the
+default phantom, where the coarse matrices were right (checked against finite differences of the nonlinear force)
+but the coarse level still grew 1.3-2x a step after ~200 steps: a coupling with the fine modes of a strongly deformed
+body that the linear bound above does not cover. The frame then goes on without it (``DriveResult.acceleration`` and a
+warning say so).
 
 Sticky contact only (one grid velocity field), like the quasi-static solver.
 """
@@ -52,7 +62,8 @@ __all__ = ["RigidModeAccelerator", "aggregate_groups", "TARGET_FACTOR", "AGGREGA
 
 #: the target frequency of the coarse modes, ``omega_t = TARGET_FACTOR * pi c / L`` (c: the scaled wave speed the time
 #: step uses; L: the scene's largest extent): the slowest deformation of the body, so a coarse mode is brought up to the
-#: body's own pace (2 and 4 were measured: 1,300 steps each against 1,500 on the resolution-3 phantom)
+#: body's own pace (measured with whole organs as groups on the resolution-3 phantom: 2 and 4 gave 1,300 steps against
+#: 1,500; a target from the shear wave speed instead, 25 mm cubes: 3,100 steps against 800)
 TARGET_FACTOR = 1.0
 
 #: edge of the cubes each organ is cut into for the coarse space (mm): :data:`warpmpm.solver.RIGID_MODE_AGGREGATE_MM`
@@ -65,6 +76,11 @@ MIN_GROUP_PARTICLES = 50
 #: the largest boost of a coarse mode (a mode with no stiffness at all, a group nothing holds, would get an infinite
 #: one; its force is zero, so the cap only keeps rounding noise from being amplified without bound)
 MAX_BOOST = 1.0e4
+
+#: the coarse level runs only when its slowest mode needs at least this boost (is 10x slower than the body's slowest
+#: deformation): the stiff-inclusion case it is for. A soft block alone has coarse modes needing at most ~40 and gained
+#: no steps from them (FEM blocks, settled: 400-700 steps either way, at 1.3-1.5x the time: benchmarks/README.md).
+MIN_BOOST = 100.0
 
 #: the most groups a grid node keeps (the largest shares; the rest are dropped from ``Z`` everywhere alike)
 NODE_GROUPS = 8
@@ -153,6 +169,12 @@ def _stencils(x_m: np.ndarray, dx: float, grid_shape) -> tuple[np.ndarray, np.nd
     return flat, w, r
 
 
+@wp.func
+def node_ijk(n: int, ny: int, nz: int):
+    """Grid indices of the node with flat index ``n`` (``(i ny + j) nz + k``)."""
+    return wp.vec3i(n // (ny * nz), (n // nz) % ny, n % nz)
+
+
 @wp.kernel
 def restrict_force(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int, ndim=2), node_share: wp.array(dtype=float, ndim=2),
                    centre: wp.array(dtype=wp.vec3), inv_len: wp.array(dtype=float), force_sum: wp.array(dtype=wp.vec3, ndim=3),
@@ -162,13 +184,9 @@ def restrict_force(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int, n
     centre over the group's radius of gyration; into ``slots[stride g + c, node % SLOTS]``. One thread an active node."""
     a = wp.tid()
     n = nodes[a]
-    ny = force_sum.shape[1]
-    nz = force_sum.shape[2]
-    i = n // (ny * nz)
-    j = (n // nz) % ny
-    k = n % nz
-    f = force_sum[i, j, k]
-    xi = wp.vec3(float(i), float(j), float(k)) * dx
+    ijk = node_ijk(n, force_sum.shape[1], force_sum.shape[2])
+    f = force_sum[ijk[0], ijk[1], ijk[2]]
+    xi = wp.vec3(float(ijk[0]), float(ijk[1]), float(ijk[2])) * dx
     slot = a % slots.shape[1]
     stride = 6 + 6 * affine
     for q in range(node_share.shape[1]):
@@ -239,12 +257,8 @@ def prolong_velocity(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int,
     if guard[2] == 0.0:
         return
     n = nodes[a]
-    ny = grid_v.shape[1]
-    nz = grid_v.shape[2]
-    i = n // (ny * nz)
-    j = (n // nz) % ny
-    k = n % nz
-    xi = wp.vec3(float(i), float(j), float(k)) * dx
+    ijk = node_ijk(n, grid_v.shape[1], grid_v.shape[2])
+    xi = wp.vec3(float(ijk[0]), float(ijk[1]), float(ijk[2])) * dx
     dv = wp.vec3(0.0)
     hit = int(0)
     stride = 6 + 6 * affine
@@ -263,7 +277,7 @@ def prolong_velocity(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int,
             dv += s * v
             hit = 1
     if hit != 0:
-        grid_v[i, j, k] = grid_v[i, j, k] + damping[0] * dv
+        grid_v[ijk[0], ijk[1], ijk[2]] = grid_v[ijk[0], ijk[1], ijk[2]] + damping[0] * dv
 
 
 class RigidModeAccelerator:
@@ -320,8 +334,8 @@ class RigidModeAccelerator:
 
     @property
     def active(self) -> bool:
-        """Built, with at least one coarse mode boosted (a scene whose coarse modes all keep up with the body needs
-        no correction, and its steps then skip the force scatter and the coarse kernels)."""
+        """Built, with a coarse mode that needs at least :data:`MIN_BOOST` (otherwise the scene's coarse modes keep up
+        with the body well enough, and its steps skip the force scatter and the coarse kernels)."""
         return self._built and self._active
 
     def coarse_matrices(self, state: State, driven: np.ndarray, axes: np.ndarray, spring_per_s2: float) -> dict:
@@ -497,7 +511,7 @@ class RigidModeAccelerator:
         B = Phi @ np.diag(boosts - 1.0) @ Phi.T
         self.frequencies_per_s = np.sqrt(w2)
         self.boosts = boosts
-        self._active = bool(np.any(boosts > 1.0))
+        self._active = bool(boosts.max() >= MIN_BOOST)
         d = self.model.device
         na = c["nodes"].size
         if na > self._capacity:  # room for the table to grow by a fifth before the arrays (and a graph) change

@@ -114,7 +114,7 @@ MIN_LAYERS_PER_CELL = 1.5
 #: Edge (mm) of the cubes each organ is cut into for the coarse space of the rigid-mode acceleration
 #: (:mod:`warpmpm.rigid_modes`). Measured on the default phantom (a 2 % in-plane scale of its mid-pancreas slice,
 #: settled mode, steps to settle; benchmarks/README.md, "Rigid-mode acceleration"): no acceleration > 8,000 (not
-#: settled), whole organs 4,500, 40 mm 2,200, 25 mm 1,600.
+#: settled), whole organs 4,700, 40 mm 2,500, 25 mm 1,700 (0.31x the time).
 RIGID_MODE_AGGREGATE_MM = 25.0
 
 
@@ -198,7 +198,10 @@ class SolverConfig:
             their rigid swings on the soft pancreas are what keeps a whole abdomen from settling.
             ``"auto"`` (default): on when a frame waits for the body to settle (``ConvergenceConfig.wait_settled``) and
             the contact is sticky; ``"on"``: also when a frame stops on the driven slice alone (sticky contact only);
-            ``"off"``: never. The coarse space: 25 mm cubes of each organ (``rigid_mode_aggregate_mm``).
+            ``"off"``: never. The coarse space: 25 mm cubes of each organ (``rigid_mode_aggregate_mm``); it starts once
+            the driven slice has arrived, and a guard switches it off where it grows unstable (``DriveResult.acceleration``).
+            Measured (benchmarks/README.md, "Rigid-mode acceleration"): the default phantom settles in 1,700 steps
+            instead of not within 8,000; a stiff block hanging on the pancreas block ends 3 % from the FEM instead of 50 %.
         rigid_mode_aggregate_mm: edge (mm) of the cubes each organ is cut into for the rigid-mode acceleration; None:
             whole organs. Default :data:`RIGID_MODE_AGGREGATE_MM` (smaller cubes: fewer steps, a longer set-up per frame
             and more work a step).
