@@ -577,7 +577,7 @@ class SliceDrivenEstimator:
             if off is not None:
                 acceleration += f", switched off at step {accel_from + off}"
                 warnings.warn(f"the rigid-mode acceleration switched itself off at step {accel_from + off} (its coarse motion "
-                              f"grew by more than {int(100 * (GUARD_GROWTH - 1))} % a step for {GUARD_STEPS} steps: unstable "
+                              f"grew by more than {round(100 * (GUARD_GROWTH - 1))} % a step for {GUARD_STEPS} steps: unstable "
                               "here); the frame went on without it", RuntimeWarning, stacklevel=2)
         # on a GPU the loop runs whole batches of sync_every steps: report the steps actually run
         det = np.linalg.det(self.state.F.numpy().astype(np.float64))
