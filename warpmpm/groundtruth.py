@@ -153,6 +153,7 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
     params["gt_settled"] = res.settled
     params["gt_body_motion_mm"] = res.body_motion_mm
     params["gt_reason"] = res.reason
+    params["gt_acceleration"] = res.acceleration  # whether the settled mode's coarse level ran (warpmpm.rigid_modes)
     return params, res
 
 
