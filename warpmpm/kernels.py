@@ -147,7 +147,6 @@ def p2g(
     xp = x[p]
     base, fx, wx, wy, wz = stencil(xp, inv_dx)
     m = mass[p]
-    mC = m * C[p]
     affine = apic_stress_affine(F[p], C[p], m, vol0[p], mu[p], lam[p], dt, inv_dx)
     mom = m * v[p]
     impulse = dt * f_ext[p]
@@ -162,7 +161,7 @@ def p2g(
                 wp.atomic_add(grid_mv, ii, jj, kk, w * (mom + affine * dpos + impulse))
                 wp.atomic_add(grid_m, ii, jj, kk, w * m)
     if want_force != 0:  # a second pass, so the loop above stays that of a step without it (a branch in it cost 17 %)
-        stress = affine - mC
+        stress = affine - m * C[p]
         for a in range(3):
             for b in range(3):
                 for c in range(3):
