@@ -555,8 +555,9 @@ class SliceDrivenEstimator:
                     self._graph = None
             if self.accelerator is not None and not accelerating and conv.arrived and not done:
                 # the slice has arrived: from here the body settles, and its slow coarse modes are accelerated. Not
-                # before: while the drive still saturates, a boosted coarse mode would be thrown by it (measured: the
-                # stomach, held by 6 driven particles, left the grid under the paper protocol's 12 mm slice motion)
+                # before, where the drive still saturates (chosen when the paper protocol's 12 mm slice motion threw
+                # the stomach off the grid from step 0; it still grew unstable later from here, which the guard now
+                # catches; on the hanging FEM blocks starting here costs 100-300 steps against starting at step 0)
                 layout = self.accelerator.layout
                 self.accelerator.build(self.state, self.driven, axes, g.kp_per_s2)
                 accelerating = True
