@@ -58,6 +58,11 @@ def test_track_without_the_truth_and_evaluate_against_it(series, tmp_path, capsy
     assert {"/cine/plane_0/image", "/cine/plane_1/image", "/cine/plane_0/box"} <= set(rec)
     rows = list(csv.DictReader(open(os.path.join(out, "track.csv"))))
     assert [r["plane"] for r in rows] == ["0", "1", "0"] and all(float(r["steps"]) > 0 for r in rows)
+    for r in rows:  # whether the whole body had settled, beside "converged" (which a slice-only rule can say before it has)
+        if r["solver"] == "quasistatic":
+            assert r["settled"] == r["converged"]
+        elif r["settled"] == "True":
+            assert float(r["body_motion_mm"]) < 0.05
     assert main(["evaluate-track", "--track", out, "--truth", truth, "--json", str(tmp_path / "e.json")]) == 0
     import json
 

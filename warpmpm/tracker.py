@@ -36,7 +36,8 @@ from .registration import BACKENDS, register_slice_organs
 from .rendering import particle_label_map, render_plane
 from .solver import SolverConfig
 
-TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "reason", "wall_s", "rms_residual_mm", "registration_ms",
+TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "settled", "body_motion_mm", "reason",
+                "wall_s", "rms_residual_mm", "registration_ms",
                 "reference_ms", "pancreas_x_mm", "pancreas_y_mm", "pancreas_z_mm", "pancreas_shift_mm"] + [f"max_{o}_mm" for o in ORGANS]
 
 
@@ -225,7 +226,8 @@ class Tracker:
         self.plane_labels[frame.plane] = self.labels_now
         return TrackedFrame(res.positions_mm, self._row(n, frame, res.positions_mm, reg_s, ref_s, solver=res.method, steps=res.steps,
                                                         linear_iterations=res.linear_iterations, converged=res.converged,
-                                                        reason=res.reason, wall_s=res.wall_s, rms_residual_mm=res.final_rms_mm))
+                                                        settled=res.settled, body_motion_mm=res.body_motion_mm, reason=res.reason,
+                                                        wall_s=res.wall_s, rms_residual_mm=res.final_rms_mm))
 
     def _skipped(self, n: int, frame: CineFrame, x: np.ndarray, reg_s: float, ref_s: float, why: str) -> TrackedFrame:
         """A frame whose slice registration failed: the estimate holds where it was (the frame is flagged in
@@ -235,7 +237,8 @@ class Tracker:
         warnings.warn(f"cine frame {frame.path}: the slice registration failed ({why}); the estimate holds the last frame's "
                       f"state and the plane's next frame is registered against {nxt}", InputWarning, stacklevel=3)
         return TrackedFrame(x.copy(), self._row(n, frame, x, reg_s, ref_s, solver="none", steps=0, linear_iterations=0, converged=False,
-                                                reason=f"registration failed: {why}", wall_s=0.0, rms_residual_mm=float("nan")))
+                                                settled=False, body_motion_mm=float("nan"), reason=f"registration failed: {why}", wall_s=0.0,
+                                                rms_residual_mm=float("nan")))
 
     def _row(self, n: int, frame: CineFrame, positions_mm: np.ndarray, reg_s: float, ref_s: float, **solve) -> dict:
         """A frame's ``track.csv`` row: what the solve did (``solve``), the registration's and the reference's
