@@ -119,6 +119,8 @@ def main(argv=None):
     p.add_argument("--grid-shift", action="store_true", help="only the soft block moved by 0, 1/4 and 1/2 cell against the grid")
     p.add_argument("--quasistatic", action="store_true", help="only the settled mode's explicit solver against the quasi-static one")
     p.add_argument("--acceleration", action="store_true", help="only the settled mode with and without its rigid-mode acceleration")
+    p.add_argument("--affine", action="store_true",
+                   help="--acceleration: add a column with the coarse space's affine cube motions (SolverConfig.rigid_mode_basis)")
     p.add_argument("--fem-convergence", action="store_true",
                    help="the FEM on the particles' mesh against finer ones (--levels), and the settled MPM against each")
     p.add_argument("--levels", default="1,2", help="--fem-convergence: mesh refinements (1,2 or 1,2,3: with three, the "
@@ -137,6 +139,8 @@ def main(argv=None):
         return fem_convergence(size, tuple(int(v) for v in a.levels.split(",")), a.scenes and a.scenes.split(","),
                                a.loads and a.loads.split(","))
     rules = SOLVERS if a.quasistatic else ACCELERATION if a.acceleration else RULES
+    if a.acceleration and a.affine:
+        rules = rules + [("settled, affine cube motions", SolverConfig(device="cpu", rigid_mode_basis="affine"), SETTLED, None)]
     ratio_name = "quasi-static / explicit" if a.quasistatic else "with / without" if a.acceleration else None
     rows = []
     print("| scene | load | " + " | ".join(r[0] for r in rules) + (f" | time, {ratio_name} |" if ratio_name else " |"))
@@ -149,9 +153,10 @@ def main(argv=None):
                          "results": {rule[0]: r for rule, r in zip(rules, res)}})
             cells = " | ".join(f"{100 * r['rel_l2']:.1f} % ({r['steps']} {'iterations' if r['method'] == 'quasistatic' else 'steps'}, "
                                f"{r['wall_s']:.1f} s)" for r in res)
-            ratio = f" | {res[1]['wall_s'] / res[0]['wall_s']:.2f}" if ratio_name else ""
+            ratio = (" | " + " / ".join(f"{r['wall_s'] / res[0]['wall_s']:.2f}" for r in res[1:])) if ratio_name else ""
             print(f"| {sname} | {lname} | {cells}{ratio} |", flush=True)
-    raw.save("fem_quasistatic" if a.quasistatic else "fem_acceleration" if a.acceleration else "fem_reference", rows)
+    raw.save("fem_quasistatic" if a.quasistatic else ("fem_acceleration_affine" if a.affine else "fem_acceleration") if a.acceleration
+             else "fem_reference", rows)
 
 
 def _extrapolate(u):

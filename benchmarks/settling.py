@@ -1,12 +1,14 @@
 """How fast a whole abdomen settles in the settled mode, with and without the rigid-mode acceleration (issue 17).
 
-    python benchmarks/settling.py [--scenes res3,default] [--max-steps 8000] [--variants off,organs,40,25]
+    python benchmarks/settling.py [--scenes res3,default] [--max-steps 8000] [--variants off,organs,40,25,affine] [--raw settling]
 
 The load of the diagnosis in benchmarks/README.md ("Why a whole-abdomen scene does not settle"): the phantom's
 mid-pancreas axial slice scaled 2 % in plane about the volume's centre (small and linear), all four organs, the
 settled mode (``ConvergenceConfig(wait_settled=True)``: adaptive damping, PD drive) with at most ``--max-steps``.
-Variants: ``off`` (no acceleration), ``organs`` (the coarse space of each organ's rigid motions), or a number (the
-edge in mm of the cubes each organ is cut into; 25 is the default). Reported per variant: steps, whether the
+Variants: ``off`` (no acceleration), ``organs`` (the coarse space of each organ's rigid motions), a number (the
+edge in mm of the cubes each organ is cut into, with their 6 rigid motions), or ``affine`` / ``affineNN`` (25 or NN
+mm cubes with their 12 affine motions: ``SolverConfig.rigid_mode_basis``); the package's default is 25 mm cubes with
+the basis :data:`warpmpm.solver.RIGID_MODE_BASIS`. Reported per variant: steps, whether the
 package's own settled rule said settled, wall time (and its ratio to ``off`` in the same run), the time a step (and
 its ratio), the 99th-percentile motion of the last 500 steps (``-`` for a run of fewer than 1,000 steps), and how far the answer lies from the default variant's
 (mean and 99th percentile, mm): where ``off`` has not settled, that is how far it still had to go.
@@ -28,7 +30,7 @@ import warp as wp  # noqa: E402
 from warpmpm import InPlaneAffine, build_model, make_phantom  # noqa: E402
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
 from warpmpm.slices import DrivingSlice  # noqa: E402
-from warpmpm.solver import RIGID_MODE_AGGREGATE_MM, SolverConfig  # noqa: E402
+from warpmpm.solver import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASIS, SolverConfig  # noqa: E402
 from warpmpm.targets import affine_targets  # noqa: E402
 
 SCENES = {"res3": ("phantom resolution 3 mm", dict(resolution=3.0), 1),
@@ -36,11 +38,13 @@ SCENES = {"res3": ("phantom resolution 3 mm", dict(resolution=3.0), 1),
 
 
 def variant_config(name: str) -> SolverConfig:
+    if name.startswith("affine"):  # affineNN: NN mm cubes with the 12 affine motions each
+        return SolverConfig(rigid_mode_aggregate_mm=float(name[6:] or RIGID_MODE_AGGREGATE_MM), rigid_mode_basis="affine")
     if name == "off":
         return SolverConfig(rigid_mode_acceleration="off")
     if name == "organs":
-        return SolverConfig(rigid_mode_aggregate_mm=None)
-    return SolverConfig(rigid_mode_aggregate_mm=float(name))
+        return SolverConfig(rigid_mode_aggregate_mm=None, rigid_mode_basis="rigid")
+    return SolverConfig(rigid_mode_aggregate_mm=float(name), rigid_mode_basis="rigid")
 
 
 def run(scene: str, variant: str, max_steps: int) -> dict:
@@ -76,7 +80,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", default="res3,default", help=f"comma-separated of {sorted(SCENES)}")
     p.add_argument("--max-steps", type=int, default=8000)
-    p.add_argument("--variants", default=f"off,organs,40,{RIGID_MODE_AGGREGATE_MM:g}")
+    p.add_argument("--variants", default=f"off,organs,40,{RIGID_MODE_AGGREGATE_MM:g},affine")
+    p.add_argument("--raw", default="settling", help="name of the raw-numbers file in benchmarks/results/ (without .json)")
     a = p.parse_args(argv)
     scenes = a.scenes.split(",")
     bad = [s for s in scenes if s not in SCENES]
@@ -86,15 +91,15 @@ def main(argv=None):
     for v in variants:
         if v not in ("off", "organs"):
             try:
-                if float(v) <= 0:
+                if float(v[6:] if v.startswith("affine") and len(v) > 6 else (RIGID_MODE_AGGREGATE_MM if v == "affine" else v)) <= 0:
                     raise ValueError
             except ValueError:
-                p.error(f"variant {v!r}: 'off', 'organs' or a cube edge in mm > 0")
+                p.error(f"variant {v!r}: 'off', 'organs', a cube edge in mm > 0, or 'affine' / 'affineNN' (NN mm cubes, affine motions)")
     if a.max_steps < 500:
         p.error("--max-steps must be at least 500")
     wp.config.log_level = wp.LOG_ERROR
     warnings.simplefilter("ignore")
-    ref = f"{RIGID_MODE_AGGREGATE_MM:g}"
+    ref = "affine" if RIGID_MODE_BASIS == "affine" else f"{RIGID_MODE_AGGREGATE_MM:g}"
     rows = []
     print("| scene | variant | groups | steps | settled | wall s (/ off) | ms a step (/ off) | p99 motion, last 500 steps, mm "
           "| from the default variant, mean / p99 mm |")
@@ -114,7 +119,7 @@ def main(argv=None):
                   f"{'yes' if r['settled'] else 'no'} | {r['wall_s']:.1f}{wr} | {r['step_ms']:.1f}{sr} | {mo} | {dd} |",
                   flush=True)
             rows.append({k: v2 for k, v2 in r.items() if k != "positions_mm"})
-    raw.save("settling", rows)
+    raw.save(a.raw, rows)
     return 0
 
 

@@ -380,7 +380,8 @@ class SliceDrivenEstimator:
         acc = self.mpm.config.rigid_mode_acceleration
         self.accelerator = None
         if self.mpm.config.method != "quasistatic" and (acc == "on" or (acc == "auto" and settle and self.mpm.n_fields == 1)):
-            self.accelerator = RigidModeAccelerator(self.mpm, aggregate_mm=self.mpm.config.rigid_mode_aggregate_mm)
+            self.accelerator = RigidModeAccelerator(self.mpm, aggregate_mm=self.mpm.config.rigid_mode_aggregate_mm,
+                                                    modes=self.mpm.config.rigid_mode_basis)
             self.solver.set_accelerator(self.accelerator)
         d = self.mpm.device
         self.state = self.mpm.state()

@@ -117,6 +117,19 @@ MIN_LAYERS_PER_CELL = 1.5
 #: settled), whole organs 4,700, 40 mm 2,500, 25 mm 1,700 (0.31x the time).
 RIGID_MODE_AGGREGATE_MM = 25.0
 
+#: The motions of each cube of the rigid-mode acceleration's coarse space (``SolverConfig.rigid_mode_basis``): the 6
+#: rigid ones. The 12 affine ones (also stretches and shears) were measured (benchmarks/README.md, "Rigid-mode
+#: acceleration", eleventh session): on the default phantom under the load above 1,100 steps instead of 1,700 (the
+#: answers 0.02 mm apart), but 1.3-1.45x the time a step (twice the coarse modes, single-threaded), so 0.82x and 0.94x
+#: the time in two runs; the resolution-3 phantom 600 steps either way at 1.2-1.4x the time; the FEM blocks as close or
+#: closer (the hanging kidney block's scale 14.6 -> 13.2 %) at 0.75-1.33x the rigid one's time. Not enough to change
+#: the default.
+#: Why fewer steps: with rigid cubes the motion left at step 1,000 was the stomach moving as a rigid body (93 % of its
+#: motion) toward rest at ``omega dt`` ~0.005, 8x slower than the coarse modes' target; rigid cubes cannot shear, so the
+#: coarse space makes that motion stiffer than it is (the soft tissue between cubes takes its whole shear in one cell)
+#: and boosts it too little, which affine cubes partly undo.
+RIGID_MODE_BASIS = "rigid"
+
 
 @dataclass(frozen=True)
 class SolverConfig:
@@ -201,10 +214,14 @@ class SolverConfig:
             ``"off"``: never. The coarse space: 25 mm cubes of each organ (``rigid_mode_aggregate_mm``); it starts once
             the driven slice has arrived, and a guard switches it off where it grows unstable (``DriveResult.acceleration``).
             Measured (benchmarks/README.md, "Rigid-mode acceleration"): the default phantom settles in 1,700 steps
-            instead of not within 8,000; a stiff block hanging on the pancreas block ends 3 % from the FEM instead of 50 %.
+            (1,100 with affine cube motions, ``rigid_mode_basis``) instead of not within 8,000; a stiff block hanging on
+            the pancreas block ends 3 % from the FEM instead of 50 %.
         rigid_mode_aggregate_mm: edge (mm) of the cubes each organ is cut into for the rigid-mode acceleration; None:
             whole organs. Default :data:`RIGID_MODE_AGGREGATE_MM` (smaller cubes: fewer steps, a longer set-up per frame
             and more work a step).
+        rigid_mode_basis: the motions of each cube in that coarse space: ``"rigid"`` (6: translations and rotations)
+            or ``"affine"`` (12: also stretches and shears, so the soft tissue between cubes can shear in the coarse
+            space: fewer steps, more work a step). Default :data:`RIGID_MODE_BASIS` (its comment has the measurement).
         cpu_threads: on the CPU, threads an explicit step splits its particle and grid kernels over
             (:mod:`warpmpm.parallel`: Warp runs each CPU launch on one core, and launches over disjoint
             particle ranges from several threads run at once; each thread scatters into a grid copy of its
@@ -238,6 +255,7 @@ class SolverConfig:
     quasistatic: QuasiStaticConfig = QuasiStaticConfig()
     rigid_mode_acceleration: Literal["auto", "on", "off"] = "auto"
     rigid_mode_aggregate_mm: float | None = RIGID_MODE_AGGREGATE_MM
+    rigid_mode_basis: Literal["rigid", "affine"] = RIGID_MODE_BASIS
     cpu_threads: int | None = None
 
     def __post_init__(self):
@@ -275,6 +293,8 @@ class SolverConfig:
             raise InputError(f"SolverConfig.method {self.method!r} handles sticky contact only; use contact='sticky' or the explicit method")
         if self.contact not in ("sticky", "sliding"):
             raise InputError(f"SolverConfig.contact must be 'sticky' or 'sliding', got {self.contact!r}")
+        if self.rigid_mode_basis not in ("rigid", "affine"):
+            raise InputError(f"SolverConfig.rigid_mode_basis must be 'rigid' or 'affine', got {self.rigid_mode_basis!r}")
         if self.rigid_mode_acceleration not in ("auto", "on", "off"):
             raise InputError(f"SolverConfig.rigid_mode_acceleration must be 'auto', 'on' or 'off', got {self.rigid_mode_acceleration!r}")
         if self.rigid_mode_acceleration == "on" and self.contact != "sticky":
