@@ -148,6 +148,8 @@ def cases(d):
          "error"),
         ("a negative rigid-mode cube (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; "
                                               "SolverConfig(rigid_mode_aggregate_mm=-5.0)"], "error"),
+        ("an unknown rigid-mode coarse basis (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; "
+                                                     "SolverConfig(rigid_mode_basis='quadratic')"], "error"),
     ]
 
 
