@@ -124,10 +124,9 @@ RIGID_MODE_AGGREGATE_MM = 25.0
 #: the time in two runs; the resolution-3 phantom 600 steps either way at 1.2-1.4x the time; the FEM blocks as close or
 #: closer (the hanging kidney block's scale 14.6 -> 13.2 %) at 0.75-1.33x the rigid one's time. Not enough to change
 #: the default.
-#: Why fewer steps: with rigid cubes the motion left at step 1,000 was the stomach moving as a rigid body (93 % of its
-#: motion) toward rest at ``omega dt`` ~0.005, 8x slower than the coarse modes' target; rigid cubes cannot shear, so the
-#: coarse space makes that motion stiffer than it is (the soft tissue between cubes takes its whole shear in one cell)
-#: and boosts it too little, which affine cubes partly undo.
+#: With rigid cubes the motion left at step 1,000 is the stomach moving as a rigid body (93 % of its motion) toward rest
+#: at ``omega dt`` ~0.006, 7x slower than the coarse modes' target, although it lies in the coarse space (99.9 %) in
+#: modes boosted 140-1,500x: why the boost does not act on it is not found yet.
 RIGID_MODE_BASIS = "rigid"
 
 

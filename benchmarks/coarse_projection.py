@@ -1,0 +1,119 @@
+"""Is the motion that keeps a settled frame from settling in the rigid-mode acceleration's coarse space? (issue 17)
+
+    python benchmarks/coarse_projection.py [--step 1000] [--window 100]
+
+The load of ``settling.py`` (the default phantom's mid-pancreas axial slice scaled 2 % in plane, all four organs,
+settled mode with the default rigid-mode acceleration). At ``--step`` the particles' move over the next ``--window``
+steps is taken, moved to the grid nodes (mass-weighted, the MPM's own B-spline weights) and projected on the coarse
+space the acceleration uses at that state (``RigidModeAccelerator.coarse_matrices``: each cube's motions on the nodes,
+``E = Z^T K Z``, ``M_c = Z^T M Z``). Printed: how much of the move (mass norm) the projection holds, the coarse model's
+frequency of it (``omega dt``), the coarse eigenmodes it lies in with their boosts, the coarse target, and the adaptive
+damping's reading of the motion the body actually makes (critical damping ``gamma = 2 omega``). Raw numbers:
+``benchmarks/results/coarse_projection.json``.
+"""
+
+import argparse
+import os
+import sys
+import warnings
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+import raw  # noqa: E402
+import warp as wp  # noqa: E402
+
+from warpmpm import InPlaneAffine, build_model, make_phantom  # noqa: E402
+from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
+from warpmpm.rigid_modes import _basis, _stencils  # noqa: E402
+from warpmpm.slices import DrivingSlice  # noqa: E402
+from warpmpm.solver import SolverConfig  # noqa: E402
+from warpmpm.targets import affine_targets  # noqa: E402
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--step", type=int, default=1000, help="step at which the move is taken (after the slice has arrived)")
+    p.add_argument("--window", type=int, default=100, help="steps the move spans (a multiple of the estimator's batch)")
+    a = p.parse_args(argv)
+    if a.step < 300 or a.window < 50:
+        p.error("--step must be at least 300 (the coarse level starts when the slice has arrived) and --window at least 50")
+    wp.config.quiet = True
+    warnings.simplefilter("ignore")
+    case = make_phantom()
+    m = build_model(case, "psdl", sampling_step=2)
+    k = int(np.median(m.voxel_ijk[m.organ_slice("pancreas"), 2]))
+    sl = [DrivingSlice("axial", k)]
+    _, tg = affine_targets(m, m.positions_mm, sl, [InPlaneAffine(1.02 * np.eye(2))], case.geometry.center_mm())
+    keep = {}
+
+    def at(est, s, rel, rms):
+        if s == a.step and est.accelerator is not None and est.accelerator.built:
+            acc = est.accelerator
+            keep.update(x0=est.state.x.numpy().astype(np.float64), damping_per_s=est.solver.damping_per_s,
+                        coarse=acc.coarse_matrices(est.state, est.driven, est._axes.numpy(), est.gains.kp_per_s2),
+                        boosts=acc.boosts.copy(), target_per_s=acc.target_per_s, affine=acc.affine)
+        if s == a.step + a.window and "x0" in keep:
+            keep["x1"] = est.state.x.numpy().astype(np.float64)
+
+    est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(), callback=at,
+                               convergence=ConvergenceConfig(wait_settled=True, max_steps=a.step + a.window))
+    est.estimate(tg)
+    if "x1" not in keep:
+        print(f"no coarse level ran at step {a.step} (settled before, or not started): nothing to project")
+        return 1
+    dt, dx = est.mpm.dt_s, est.mpm.dx_mm * 1e-3
+    c, x0 = keep["coarse"], keep["x0"]
+    move = keep["x1"] - x0
+    mass = est.mpm.mass_kg.astype(np.float64)
+    flat, w, _ = _stencils(x0, dx, est.mpm.grid_shape)
+    nn = int(np.prod(est.mpm.grid_shape))
+    mom = np.zeros((nn, 3))
+    mn = np.zeros(nn)
+    for comp in range(3):
+        np.add.at(mom[:, comp], flat.ravel(), (w * (mass * move[:, comp])[:, None]).ravel())
+    np.add.at(mn, flat.ravel(), (w * mass[:, None]).ravel())
+    nodes = c["nodes"]
+    u = mom[nodes] / np.maximum(mn[nodes], 1e-30)[:, None]
+    node_mass = c["node_mass"]
+    a_c, A_c = _basis(keep["affine"])
+    S = a_c.shape[0]
+    ny, nz = est.mpm.grid_shape[1], est.mpm.grid_shape[2]
+    X = np.stack([nodes // (ny * nz), (nodes // nz) % ny, nodes % nz], axis=1) * dx
+    ztmu = np.zeros(c["E"].shape[0])
+    for q in range(c["node_group"].shape[1]):
+        sh, g = c["node_share"][:, q], c["node_group"][:, q]
+        ok = sh > 0
+        y = (X[ok] - c["centre"][g[ok]]) / c["radius"][g[ok], None]
+        zv = sh[ok, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y))
+        np.add.at(ztmu, (g[ok, None] * S + np.arange(S)[None]).ravel(), np.einsum("nsc,nc->ns", zv, node_mass[ok, None] * u[ok]).ravel())
+    Mc, E = c["Mc"], c["E"]
+    yc = np.linalg.solve(Mc, ztmu)
+    held = float(yc @ Mc @ yc / (u * u * node_mass[:, None]).sum())
+    omega_c = float(np.sqrt(max(yc @ E @ yc / (yc @ Mc @ yc), 0.0)))
+    Lc = np.linalg.cholesky(Mc)
+    Li = np.linalg.inv(Lc)
+    w2, V = np.linalg.eigh(Li @ E @ Li.T)
+    coef = V.T @ (Lc.T @ yc)
+    weight = coef**2 / float((coef**2).sum())
+    order = np.argsort(-weight)[:6]
+    modes = [{"omega_dt": float(np.sqrt(max(w2[j], 0.0)) * dt), "weight": float(weight[j]), "boost": float(keep["boosts"][j])}
+             for j in order]
+    res = {"step": a.step, "window": a.window, "move_rms_mm": float(1e3 * np.sqrt((move**2).sum(1).mean())), "held_by_coarse_space": held,
+           "coarse_omega_dt": omega_c * dt, "target_omega_dt": keep["target_per_s"] * dt,
+           "body_omega_dt_from_damping": keep["damping_per_s"] * dt / 2.0, "modes": modes}
+    print(f"move over steps {a.step}-{a.step + a.window}: {res['move_rms_mm']:.4f} mm RMS")
+    print(f"held by the coarse space (mass norm): {held:.4f}")
+    print(f"omega dt: coarse model of the move {res['coarse_omega_dt']:.5f}, coarse target {res['target_omega_dt']:.5f}, "
+          f"the body's motion by the adaptive damping {res['body_omega_dt_from_damping']:.5f}")
+    print("| coarse eigenmode omega dt | share of the move | boost |")
+    print("|---|---|---|")
+    for md in modes:
+        print(f"| {md['omega_dt']:.5f} | {md['weight']:.3f} | {md['boost']:.1f} |")
+    raw.save("coarse_projection", res)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
