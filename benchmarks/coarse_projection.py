@@ -8,8 +8,10 @@ steps is taken, moved to the grid nodes (mass-weighted, the MPM's own B-spline w
 space the acceleration uses at that state (``RigidModeAccelerator.coarse_matrices``: each cube's motions on the nodes,
 ``E = Z^T K Z``, ``M_c = Z^T M Z``). Printed: how much of the move (mass norm) the projection holds, the coarse model's
 frequency of it (``omega dt``), the coarse eigenmodes it lies in with their boosts, the coarse target, and the adaptive
-damping's reading of the motion the body actually makes (critical damping ``gamma = 2 omega``). Raw numbers:
-``benchmarks/results/coarse_projection.json``.
+damping's reading of the motion the body actually makes (critical damping ``gamma = 2 omega``); and the pace the
+preconditioned operator gives that motion, ``omega^2 = -u.M dv / u.M u`` with ``dv = (M^-1 + Z B Z^T) f`` and ``f = -K u``
+(``K``: the small-strain stiffness and the drive's spring at that state, the quasi-static solver's operator), beside
+the same without the coarse correction. Raw numbers: ``benchmarks/results/coarse_projection.json``.
 """
 
 import argparse
@@ -26,6 +28,7 @@ import warp as wp  # noqa: E402
 
 from warpmpm import InPlaneAffine, build_model, make_phantom  # noqa: E402
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
+from warpmpm.quasistatic import apply_stiffness  # noqa: E402
 from warpmpm.rigid_modes import _basis, _stencils  # noqa: E402
 from warpmpm.slices import DrivingSlice  # noqa: E402
 from warpmpm.solver import SolverConfig  # noqa: E402
@@ -53,7 +56,8 @@ def main(argv=None):
             acc = est.accelerator
             keep.update(x0=est.state.x.numpy().astype(np.float64), damping_per_s=est.solver.damping_per_s,
                         coarse=acc.coarse_matrices(est.state, est.driven, est._axes.numpy(), est.gains.kp_per_s2),
-                        boosts=acc.boosts.copy(), target_per_s=acc.target_per_s, affine=acc.affine)
+                        boosts=acc.boosts.copy(), target_per_s=acc.target_per_s, affine=acc.affine,
+                        B=acc._B.numpy().astype(np.float64))
         if s == a.step + a.window and "x0" in keep:
             keep["x1"] = est.state.x.numpy().astype(np.float64)
 
@@ -100,13 +104,47 @@ def main(argv=None):
     order = np.argsort(-weight)[:6]
     modes = [{"omega_dt": float(np.sqrt(max(w2[j], 0.0)) * dt), "weight": float(weight[j]), "boost": float(keep["boosts"][j])}
              for j in order]
+    # the preconditioned operator along the move: f = -K u on the nodes, dv = M^-1 f + Z B Z^T f
+    d = est.mpm.device
+    pen_k = np.zeros(m.n, np.float32)
+    proj = np.zeros((m.n, 3, 3), np.float32)
+    pen_k[est.driven] = est.gains.kp_per_s2 * mass[est.driven]
+    proj[est.driven] = est._axes.numpy()
+    u_all = np.zeros((nn, 3))
+    u_all[nodes] = u
+    out = wp.zeros(nn, dtype=wp.vec3, device=d)
+    wp.launch(apply_stiffness, m.n, [wp.array(x0.astype(np.float32), dtype=wp.vec3, device=d), est.mpm.vol0, est.mpm.mu,
+                                     est.mpm.lam, wp.array(pen_k, dtype=float, device=d), wp.array(proj, dtype=wp.mat33, device=d),
+                                     dx, ny, nz, wp.array(u_all.astype(np.float32), dtype=wp.vec3, device=d), out], device=d)
+    f = -out.numpy().astype(np.float64)[nodes]
+    ztf = np.zeros(c["E"].shape[0])
+    entries = []
+    for q in range(c["node_group"].shape[1]):
+        sh, g = c["node_share"][:, q], c["node_group"][:, q]
+        ok = sh > 0
+        y = (X[ok] - c["centre"][g[ok]]) / c["radius"][g[ok], None]
+        zv = sh[ok, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y))
+        idx = g[ok, None] * S + np.arange(S)[None]
+        entries.append((ok, idx, zv))
+        np.add.at(ztf, idx.ravel(), np.einsum("nsc,nc->ns", zv, f[ok]).ravel())
+    yv = keep["B"] @ ztf
+    dv_coarse = np.zeros_like(u)
+    for ok, idx, zv in entries:
+        dv_coarse[ok] += np.einsum("nsc,ns->nc", zv, yv[idx])
+    umu = float((node_mass[:, None] * u * u).sum())
+    plain = -float((u * f).sum()) / umu
+    boosted = -float((node_mass[:, None] * u * (f / node_mass[:, None] + dv_coarse)).sum()) / umu
+    res_op = {"operator_omega_dt_without_coarse": float(np.sqrt(max(plain, 0.0)) * dt),
+              "operator_omega_dt_with_coarse": float(np.sqrt(max(boosted, 0.0)) * dt)}
     res = {"step": a.step, "window": a.window, "move_rms_mm": float(1e3 * np.sqrt((move**2).sum(1).mean())), "held_by_coarse_space": held,
            "coarse_omega_dt": omega_c * dt, "target_omega_dt": keep["target_per_s"] * dt,
-           "body_omega_dt_from_damping": keep["damping_per_s"] * dt / 2.0, "modes": modes}
+           "body_omega_dt_from_damping": keep["damping_per_s"] * dt / 2.0, "modes": modes, **res_op}
     print(f"move over steps {a.step}-{a.step + a.window}: {res['move_rms_mm']:.4f} mm RMS")
     print(f"held by the coarse space (mass norm): {held:.4f}")
     print(f"omega dt: coarse model of the move {res['coarse_omega_dt']:.5f}, coarse target {res['target_omega_dt']:.5f}, "
           f"the body's motion by the adaptive damping {res['body_omega_dt_from_damping']:.5f}")
+    print(f"the operator along the move: omega dt {res['operator_omega_dt_without_coarse']:.5f} without the coarse correction, "
+          f"{res['operator_omega_dt_with_coarse']:.5f} with it")
     print("| coarse eigenmode omega dt | share of the move | boost |")
     print("|---|---|---|")
     for md in modes:
