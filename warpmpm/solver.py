@@ -125,8 +125,8 @@ RIGID_MODE_AGGREGATE_MM = 25.0
 #: closer (the hanging kidney block's scale 14.6 -> 13.2 %) at 0.75-1.33x the rigid one's time. Not enough to change
 #: the default.
 #: With rigid cubes the motion left at step 1,000 is the stomach moving as a rigid body (93 % of its motion) toward rest
-#: at ``omega dt`` ~0.006, 7x slower than the coarse modes' target: the cubes hold it in the mass norm (99.9 %), but
-#: the correction speeds it up only 10x along it (``benchmarks/coarse_projection.py``): the energy norm is the suspect.
+#: at ``omega dt`` ~0.006, 7x slower than the coarse modes' target, though the cubes hold it (99.9 %, mass norm) and the
+#: coarse correction gives it ~0.02 on the linear operator (``benchmarks/coarse_projection.py``): not understood yet.
 RIGID_MODE_BASIS = "rigid"
 
 
