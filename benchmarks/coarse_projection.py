@@ -11,7 +11,10 @@ frequency of it (``omega dt``), the coarse eigenmodes it lies in with their boos
 damping's reading of the motion the body actually makes (critical damping ``gamma = 2 omega``); and the pace the
 preconditioned operator gives that motion, ``omega^2 = -u.M dv / u.M u`` with ``dv = (M^-1 + Z B Z^T) f`` and ``f = -K u``
 (``K``: the small-strain stiffness and the drive's spring at that state, the quasi-static solver's operator), beside
-the same without the coarse correction. Raw numbers: ``benchmarks/results/coarse_projection.json``.
+the same without the coarse correction. With ``--eigen N``: the N slowest modes of the accelerated relaxation itself
+(LOBPCG on ``K v = lambda P^-1 v``, ``P = M^-1 + Z B Z^T`` the step's preconditioner at that state, ``P^-1`` by Woodbury
+over the boosted coarse modes), their overlap with the move, how much of each lies in the coarse space and in the
+boosted modes (mass norm), and its pace without the correction. Raw numbers: ``benchmarks/results/coarse_projection.json``.
 """
 
 import argparse
@@ -39,7 +42,10 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--step", type=int, default=1000, help="step at which the move is taken (after the slice has arrived)")
     p.add_argument("--window", type=int, default=100, help="steps the move spans (a multiple of the estimator's batch)")
+    p.add_argument("--eigen", type=int, default=0, help="also the N slowest modes of the accelerated relaxation (LOBPCG; 0: none)")
     a = p.parse_args(argv)
+    if a.eigen < 0 or a.eigen > 12:
+        p.error("--eigen must be 0-12")
     if a.step < 300 or a.window < 50:
         p.error("--step must be at least 300 (the coarse level starts when the slice has arrived) and --window at least 50")
     wp.config.quiet = True
@@ -149,8 +155,103 @@ def main(argv=None):
     print("|---|---|---|")
     for md in modes:
         print(f"| {md['omega_dt']:.5f} | {md['weight']:.3f} | {md['boost']:.1f} |")
+    if a.eigen:
+        res["slowest_modes"] = slowest_modes(est, m, keep, x0, u, nodes, node_mass, X, a_c, A_c, a.eigen)
+        print("| accelerated mode omega dt | overlap with the move | in the coarse space | in the boosted modes | "
+              "pace without the correction | mass share of its 50 largest nodes |")
+        print("|---|---|---|---|---|---|")
+        for md in res["slowest_modes"]:
+            print(f"| {md['omega_dt']:.5f} | {md['overlap']:.3f} | {md['in_coarse']:.3f} | {md['in_boosted']:.3f} | "
+                  f"{md['plain_omega_dt']:.5f} | {md['top50']:.3f} |")
     raw.save("coarse_projection", res)
     return 0
+
+
+def slowest_modes(est, m, keep, x0, u, nodes, node_mass, X, a_c, A_c, count):
+    """The ``count`` slowest modes of the relaxation with the coarse correction at ``keep``'s state (see the module
+    docstring), each with its overlap with the move ``u`` and where its mass lies."""
+    from scipy.sparse.linalg import LinearOperator, lobpcg
+
+    mp, d = est.mpm, est.mpm.device
+    dt, dx = mp.dt_s, mp.dx_mm * 1e-3
+    gs = mp.grid_shape
+    nn, ny, nz, na = int(np.prod(gs)), gs[1], gs[2], nodes.size
+    mass = mp.mass_kg.astype(np.float64)
+    pen_k = np.zeros(m.n, np.float32)
+    proj = np.zeros((m.n, 3, 3), np.float32)
+    pen_k[est.driven] = est.gains.kp_per_s2 * mass[est.driven]
+    proj[est.driven] = est._axes.numpy()
+    xw = wp.array(x0.astype(np.float32), dtype=wp.vec3, device=d)
+    pk, pw = wp.array(pen_k, dtype=float, device=d), wp.array(proj, dtype=wp.mat33, device=d)
+    vin, out = wp.zeros(nn, dtype=wp.vec3, device=d), wp.zeros(nn, dtype=wp.vec3, device=d)
+    full = np.zeros((nn, 3))
+
+    def kmul(v):
+        v2 = v.reshape(3 * na, -1)
+        res = np.empty_like(v2)
+        for j in range(v2.shape[1]):
+            full[:] = 0.0
+            full[nodes] = v2[:, j].reshape(na, 3)
+            vin.assign(full.astype(np.float32))
+            out.zero_()
+            wp.launch(apply_stiffness, m.n, [xw, mp.vol0, mp.mu, mp.lam, pk, pw, dx, ny, nz, vin, out], device=d)
+            res[:, j] = out.numpy()[nodes].astype(np.float64).ravel()
+        return res.reshape(v.shape)
+
+    c = keep["coarse"]
+    S = a_c.shape[0]
+    Z = np.zeros((na, 3, c["E"].shape[0]))
+    for q in range(c["node_group"].shape[1]):
+        sh, g = c["node_share"][:, q], c["node_group"][:, q]
+        ok = np.nonzero(sh > 0)[0]
+        y = (X[ok] - c["centre"][g[ok]]) / c["radius"][g[ok], None]
+        zv = sh[ok, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y))
+        for k in range(S):
+            Z[ok, :, g[ok] * S + k] += zv[:, k, :]
+    Z = Z.reshape(3 * na, -1)
+    mw = np.repeat(node_mass, 3)
+    E, Mc = c["E"], c["Mc"]
+    Lc = np.linalg.cholesky(Mc)
+    Li = np.linalg.inv(Lc)
+    w2, V = np.linalg.eigh(Li @ E @ Li.T)
+    Phi = Li.T @ V
+    t2 = keep["target_per_s"] ** 2
+    w2 = np.maximum(w2, 0.0)
+    beta = np.where(w2 < t2, np.minimum(t2 / np.maximum(w2, 1e-300), 1.0e4), 1.0)
+    b = beta > 1.0
+    W = Z @ Phi[:, b]
+    keepf = (beta[b] - 1.0) / beta[b]
+
+    def pinv(v):  # (M^-1 + W D W^T)^-1 = M - M W diag((beta-1)/beta) W^T M, W^T M W = I
+        v2 = v.reshape(3 * na, -1)
+        mv = mw[:, None] * v2
+        return (mv - mw[:, None] * (W @ (keepf[:, None] * (W.T @ mv)))).reshape(v.shape)
+
+    def pmul(v):
+        v2 = v.reshape(3 * na, -1)
+        return (v2 / mw[:, None] + W @ ((beta[b] - 1.0)[:, None] * (W.T @ v2))).reshape(v.shape)
+
+    n3 = 3 * na
+    ops = [LinearOperator((n3, n3), matvec=f, matmat=f, dtype=np.float64) for f in (kmul, pinv, pmul)]
+    uf = u.ravel()
+    rng = np.random.default_rng(0)
+    X0 = np.column_stack([uf] + [rng.standard_normal(n3) for _ in range(count - 1)])
+    vals, vecs = lobpcg(ops[0], X0, B=ops[1], M=ops[2], largest=False, maxiter=300, tol=1e-6)
+    order = np.argsort(vals)
+    mc_inv = np.linalg.inv(Mc)
+    uq = uf / np.sqrt(uf @ pinv(uf))
+    modes = []
+    for j in order:
+        v = vecs[:, j] / np.sqrt(vecs[:, j] @ pinv(vecs[:, j]))
+        vmv = float(v @ (mw * v))
+        ztmv = Z.T @ (mw * v)
+        wtmv = W.T @ (mw * v)
+        amp = (np.linalg.norm(v.reshape(na, 3), axis=1) ** 2) * node_mass
+        top = np.sort(amp)[::-1]
+        modes.append({"omega_dt": float(np.sqrt(max(vals[j], 0.0)) * dt), "overlap": float(abs(v @ pinv(uq))),
+                      "in_coarse": float(ztmv @ mc_inv @ ztmv / vmv), "in_boosted": float(wtmv @ wtmv / vmv),
+                      "plain_omega_dt": float(np.sqrt(max(v @ kmul(v) / vmv, 0.0)) * dt), "top50": float(top[:50].sum() / top.sum())})
+    return modes
 
 
 if __name__ == "__main__":

@@ -125,8 +125,9 @@ RIGID_MODE_AGGREGATE_MM = 25.0
 #: closer (the hanging kidney block's scale 14.6 -> 13.2 %) at 0.75-1.33x the rigid one's time. Not enough to change
 #: the default.
 #: With rigid cubes the motion left at step 1,000 is the stomach moving as a rigid body (93 % of its motion) toward rest
-#: at ``omega dt`` ~0.006, 7x slower than the coarse modes' target, though the cubes hold it (99.9 %, mass norm) and the
-#: coarse correction gives it ~0.02 on the linear operator (``benchmarks/coarse_projection.py``): not understood yet.
+#: at ``omega dt`` ~0.006, 7x slower than the coarse modes' target: the slowest accelerated modes lie ~99 % (by mass) in
+#: the boosted coarse modes, and the ~1 % outside keeps its full inertia, so a mode's boost is capped at about one over
+#: that fraction (benchmarks/README.md); affine cubes hold more of it.
 RIGID_MODE_BASIS = "rigid"
 
 
