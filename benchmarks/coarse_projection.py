@@ -1,12 +1,13 @@
 """Is the motion that keeps a settled frame from settling in the rigid-mode acceleration's coarse space? (issue 17)
 
-    python benchmarks/coarse_projection.py [--step 1000] [--window 100]
+    python benchmarks/coarse_projection.py [--step 1000] [--window 100] [--eigen 4]
 
 The load of ``settling.py`` (the default phantom's mid-pancreas axial slice scaled 2 % in plane, all four organs,
 settled mode with the default rigid-mode acceleration). At ``--step`` the particles' move over the next ``--window``
 steps is taken, moved to the grid nodes (mass-weighted, the MPM's own B-spline weights) and projected on the coarse
-space the acceleration uses at that state (``RigidModeAccelerator.coarse_matrices``: each cube's motions on the nodes,
-``E = Z^T K Z``, ``M_c = Z^T M Z``). Printed: how much of the move (mass norm) the projection holds, the coarse model's
+space a build of the acceleration at that state makes (``RigidModeAccelerator.build``: each cube's motions on the
+nodes, ``E = Z^T K Z``, ``M_c = Z^T M Z``, the boosts). Printed: how much of the move (mass norm) the projection holds,
+the coarse model's
 frequency of it (``omega dt``), the coarse eigenmodes it lies in with their boosts, the coarse target, and the adaptive
 damping's reading of the motion the body actually makes (critical damping ``gamma = 2 omega``); and the pace the
 preconditioned operator gives that motion, ``omega^2 = -u.M dv / u.M u`` with ``dv = (M^-1 + Z B Z^T) f`` and ``f = -K u``
@@ -32,10 +33,60 @@ import warp as wp  # noqa: E402
 from warpmpm import InPlaneAffine, build_model, make_phantom  # noqa: E402
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
 from warpmpm.quasistatic import apply_stiffness  # noqa: E402
-from warpmpm.rigid_modes import _basis, _stencils  # noqa: E402
+from warpmpm.rigid_modes import RigidModeAccelerator, _basis, _stencils  # noqa: E402
 from warpmpm.slices import DrivingSlice  # noqa: E402
 from warpmpm.solver import SolverConfig  # noqa: E402
 from warpmpm.targets import affine_targets  # noqa: E402
+
+
+def coarse_basis(c: dict, dx: float, grid_shape, affine: bool) -> np.ndarray:
+    """The coarse space ``Z`` of a build (``RigidModeAccelerator.coarse``) as a dense (3 x active nodes, modes) matrix:
+    each group's share of each node times its motion there, as the restriction and prolongation kernels apply it."""
+    a_c, A_c = _basis(affine)
+    S = a_c.shape[0]
+    nodes = c["nodes"]
+    ny, nz = grid_shape[1], grid_shape[2]
+    X = np.stack([nodes // (ny * nz), (nodes // nz) % ny, nodes % nz], axis=1) * dx
+    Z = np.zeros((nodes.size, 3, c["E"].shape[0]))
+    for q in range(c["node_group"].shape[1]):
+        sh, g = c["node_share"][:, q], c["node_group"][:, q]
+        ok = np.nonzero(sh > 0)[0]
+        y = (X[ok] - c["centre"][g[ok]]) / c["radius"][g[ok], None]
+        zv = sh[ok, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y))
+        for k in range(S):
+            Z[ok, :, g[ok] * S + k] += zv[:, k, :]
+    return Z.reshape(3 * nodes.size, -1)
+
+
+def stiffness_operator(est, x0_m: np.ndarray, nodes: np.ndarray):
+    """``v -> K v`` on the active ``nodes`` (3 values a node; one column or several): the small-strain stiffness at
+    positions ``x0_m`` plus the drive's spring, the quasi-static solver's operator (:func:`apply_stiffness`)."""
+    mp, d = est.mpm, est.mpm.device
+    gs = mp.grid_shape
+    nn, na = int(np.prod(gs)), nodes.size
+    mass = mp.mass_kg.astype(np.float64)
+    pen_k = np.zeros(mp.n, np.float32)
+    proj = np.zeros((mp.n, 3, 3), np.float32)
+    pen_k[est.driven] = est.gains.kp_per_s2 * mass[est.driven]
+    proj[est.driven] = est._axes.numpy()
+    xw = wp.array(x0_m.astype(np.float32), dtype=wp.vec3, device=d)
+    pk, pw = wp.array(pen_k, dtype=float, device=d), wp.array(proj, dtype=wp.mat33, device=d)
+    vin, out = wp.zeros(nn, dtype=wp.vec3, device=d), wp.zeros(nn, dtype=wp.vec3, device=d)
+    full = np.zeros((nn, 3))
+
+    def kmul(v):
+        v2 = v.reshape(3 * na, -1)
+        res = np.empty_like(v2)
+        for j in range(v2.shape[1]):
+            full[:] = 0.0
+            full[nodes] = v2[:, j].reshape(na, 3)
+            vin.assign(full.astype(np.float32))
+            out.zero_()
+            wp.launch(apply_stiffness, mp.n, [xw, mp.vol0, mp.mu, mp.lam, pk, pw, mp.dx_mm * 1e-3, gs[1], gs[2], vin, out], device=d)
+            res[:, j] = out.numpy()[nodes].astype(np.float64).ravel()
+        return res.reshape(v.shape)
+
+    return kmul
 
 
 def main(argv=None):
@@ -59,11 +110,10 @@ def main(argv=None):
 
     def at(est, s, rel, rms):
         if s == a.step and est.accelerator is not None and est.accelerator.built:
-            acc = est.accelerator
-            keep.update(x0=est.state.x.numpy().astype(np.float64), damping_per_s=est.solver.damping_per_s,
-                        coarse=acc.coarse_matrices(est.state, est.driven, est._axes.numpy(), est.gains.kp_per_s2),
-                        boosts=acc.boosts.copy(), target_per_s=acc.target_per_s, affine=acc.affine,
-                        B=acc._B.numpy().astype(np.float64))
+            # the coarse level as a build at this state makes it (a second accelerator: the running one is left alone)
+            acc = RigidModeAccelerator(est.mpm, aggregate_mm=est.mpm.config.rigid_mode_aggregate_mm, modes=est.mpm.config.rigid_mode_basis)
+            acc.build(est.state, est.driven, est._axes.numpy(), est.gains.kp_per_s2)
+            keep.update(x0=est.state.x.numpy().astype(np.float64), damping_per_s=est.solver.damping_per_s, acc=acc)
         if s == a.step + a.window and "x0" in keep:
             keep["x1"] = est.state.x.numpy().astype(np.float64)
 
@@ -73,8 +123,12 @@ def main(argv=None):
     if "x1" not in keep:
         print(f"no coarse level ran at step {a.step} (settled before, or not started): nothing to project")
         return 1
+    acc, x0 = keep["acc"], keep["x0"]
+    c = acc.coarse
     dt, dx = est.mpm.dt_s, est.mpm.dx_mm * 1e-3
-    c, x0 = keep["coarse"], keep["x0"]
+    nodes, node_mass = c["nodes"], c["node_mass"]
+    mw = np.repeat(node_mass, 3)
+    # the move on the active nodes (mass-weighted, the MPM's B-spline weights)
     move = keep["x1"] - x0
     mass = est.mpm.mass_kg.astype(np.float64)
     flat, w, _ = _stencils(x0, dx, est.mpm.grid_shape)
@@ -84,67 +138,29 @@ def main(argv=None):
     for comp in range(3):
         np.add.at(mom[:, comp], flat.ravel(), (w * (mass * move[:, comp])[:, None]).ravel())
     np.add.at(mn, flat.ravel(), (w * mass[:, None]).ravel())
-    nodes = c["nodes"]
-    u = mom[nodes] / np.maximum(mn[nodes], 1e-30)[:, None]
-    node_mass = c["node_mass"]
-    a_c, A_c = _basis(keep["affine"])
-    S = a_c.shape[0]
-    ny, nz = est.mpm.grid_shape[1], est.mpm.grid_shape[2]
-    X = np.stack([nodes // (ny * nz), (nodes // nz) % ny, nodes % nz], axis=1) * dx
-    ztmu = np.zeros(c["E"].shape[0])
-    for q in range(c["node_group"].shape[1]):
-        sh, g = c["node_share"][:, q], c["node_group"][:, q]
-        ok = sh > 0
-        y = (X[ok] - c["centre"][g[ok]]) / c["radius"][g[ok], None]
-        zv = sh[ok, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y))
-        np.add.at(ztmu, (g[ok, None] * S + np.arange(S)[None]).ravel(), np.einsum("nsc,nc->ns", zv, node_mass[ok, None] * u[ok]).ravel())
-    Mc, E = c["Mc"], c["E"]
-    yc = np.linalg.solve(Mc, ztmu)
-    held = float(yc @ Mc @ yc / (u * u * node_mass[:, None]).sum())
+    u = (mom[nodes] / np.maximum(mn[nodes], 1e-30)[:, None]).ravel()
+    Z = coarse_basis(c, dx, est.mpm.grid_shape, acc.affine)
+    kmul = stiffness_operator(est, x0, nodes)
+    Mc, E, Phi = c["Mc"], c["E"], acc.mode_shapes
+    # its projection on the coarse space and the coarse eigenmodes it lies in (Phi^T M_c Phi = I)
+    yc = np.linalg.solve(Mc, Z.T @ (mw * u))
+    umu = float(u @ (mw * u))
+    held = float(yc @ Mc @ yc / umu)
     omega_c = float(np.sqrt(max(yc @ E @ yc / (yc @ Mc @ yc), 0.0)))
-    Lc = np.linalg.cholesky(Mc)
-    Li = np.linalg.inv(Lc)
-    w2, V = np.linalg.eigh(Li @ E @ Li.T)
-    coef = V.T @ (Lc.T @ yc)
+    coef = Phi.T @ (Mc @ yc)
     weight = coef**2 / float((coef**2).sum())
-    order = np.argsort(-weight)[:6]
-    modes = [{"omega_dt": float(np.sqrt(max(w2[j], 0.0)) * dt), "weight": float(weight[j]), "boost": float(keep["boosts"][j])}
-             for j in order]
-    # the preconditioned operator along the move: f = -K u on the nodes, dv = M^-1 f + Z B Z^T f
-    d = est.mpm.device
-    pen_k = np.zeros(m.n, np.float32)
-    proj = np.zeros((m.n, 3, 3), np.float32)
-    pen_k[est.driven] = est.gains.kp_per_s2 * mass[est.driven]
-    proj[est.driven] = est._axes.numpy()
-    u_all = np.zeros((nn, 3))
-    u_all[nodes] = u
-    out = wp.zeros(nn, dtype=wp.vec3, device=d)
-    wp.launch(apply_stiffness, m.n, [wp.array(x0.astype(np.float32), dtype=wp.vec3, device=d), est.mpm.vol0, est.mpm.mu,
-                                     est.mpm.lam, wp.array(pen_k, dtype=float, device=d), wp.array(proj, dtype=wp.mat33, device=d),
-                                     dx, ny, nz, wp.array(u_all.astype(np.float32), dtype=wp.vec3, device=d), out], device=d)
-    f = -out.numpy().astype(np.float64)[nodes]
-    ztf = np.zeros(c["E"].shape[0])
-    entries = []
-    for q in range(c["node_group"].shape[1]):
-        sh, g = c["node_share"][:, q], c["node_group"][:, q]
-        ok = sh > 0
-        y = (X[ok] - c["centre"][g[ok]]) / c["radius"][g[ok], None]
-        zv = sh[ok, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y))
-        idx = g[ok, None] * S + np.arange(S)[None]
-        entries.append((ok, idx, zv))
-        np.add.at(ztf, idx.ravel(), np.einsum("nsc,nc->ns", zv, f[ok]).ravel())
-    yv = keep["B"] @ ztf
-    dv_coarse = np.zeros_like(u)
-    for ok, idx, zv in entries:
-        dv_coarse[ok] += np.einsum("nsc,ns->nc", zv, yv[idx])
-    umu = float((node_mass[:, None] * u * u).sum())
-    plain = -float((u * f).sum()) / umu
-    boosted = -float((node_mass[:, None] * u * (f / node_mass[:, None] + dv_coarse)).sum()) / umu
-    res_op = {"operator_omega_dt_without_coarse": float(np.sqrt(max(plain, 0.0)) * dt),
-              "operator_omega_dt_with_coarse": float(np.sqrt(max(boosted, 0.0)) * dt)}
+    modes = [{"omega_dt": float(acc.frequencies_per_s[j] * dt), "weight": float(weight[j]), "boost": float(acc.boosts[j])}
+             for j in np.argsort(-weight)[:6]]
+    # the step's operator along the move: f = -K u, dv = M^-1 f + Z B Z^T f
+    B = Phi @ np.diag(acc.boosts - 1.0) @ Phi.T
+    f = -kmul(u)
+    plain = -float(u @ f) / umu
+    boosted = -float(u @ (f + mw * (Z @ (B @ (Z.T @ f))))) / umu
     res = {"step": a.step, "window": a.window, "move_rms_mm": float(1e3 * np.sqrt((move**2).sum(1).mean())), "held_by_coarse_space": held,
-           "coarse_omega_dt": omega_c * dt, "target_omega_dt": keep["target_per_s"] * dt,
-           "body_omega_dt_from_damping": keep["damping_per_s"] * dt / 2.0, "modes": modes, **res_op}
+           "coarse_omega_dt": omega_c * dt, "target_omega_dt": acc.target_per_s * dt,
+           "body_omega_dt_from_damping": keep["damping_per_s"] * dt / 2.0, "modes": modes,
+           "operator_omega_dt_without_coarse": float(np.sqrt(max(plain, 0.0)) * dt),
+           "operator_omega_dt_with_coarse": float(np.sqrt(max(boosted, 0.0)) * dt)}
     print(f"move over steps {a.step}-{a.step + a.window}: {res['move_rms_mm']:.4f} mm RMS")
     print(f"held by the coarse space (mass norm): {held:.4f}")
     print(f"omega dt: coarse model of the move {res['coarse_omega_dt']:.5f}, coarse target {res['target_omega_dt']:.5f}, "
@@ -156,7 +172,7 @@ def main(argv=None):
     for md in modes:
         print(f"| {md['omega_dt']:.5f} | {md['weight']:.3f} | {md['boost']:.1f} |")
     if a.eigen:
-        res["slowest_modes"] = slowest_modes(est, m, keep, x0, u, nodes, node_mass, X, a_c, A_c, a.eigen)
+        res["slowest_modes"] = slowest_modes(kmul, Z, mw, Phi, acc.boosts, u, dt, a.eigen)
         print("| accelerated mode omega dt | overlap with the move | in the coarse space | in the boosted modes | "
               "pace without the correction | mass share of its 50 largest nodes |")
         print("|---|---|---|---|---|---|")
@@ -167,90 +183,42 @@ def main(argv=None):
     return 0
 
 
-def slowest_modes(est, m, keep, x0, u, nodes, node_mass, X, a_c, A_c, count):
-    """The ``count`` slowest modes of the relaxation with the coarse correction at ``keep``'s state (see the module
-    docstring), each with its overlap with the move ``u`` and where its mass lies."""
+def slowest_modes(kmul, Z, mw, Phi, boosts, u, dt, count):
+    """The ``count`` slowest modes of the relaxation with the coarse correction (``K v = lambda P^-1 v``,
+    ``P = M^-1 + Z B Z^T``; ``P^-1 = M - M W diag((beta - 1) / beta) W^T M`` with ``W = Z Phi_b`` over the boosted modes,
+    ``W^T M W = I``), each with its overlap with the move ``u`` and where its mass lies."""
     from scipy.sparse.linalg import LinearOperator, lobpcg
 
-    mp, d = est.mpm, est.mpm.device
-    dt, dx = mp.dt_s, mp.dx_mm * 1e-3
-    gs = mp.grid_shape
-    nn, ny, nz, na = int(np.prod(gs)), gs[1], gs[2], nodes.size
-    mass = mp.mass_kg.astype(np.float64)
-    pen_k = np.zeros(m.n, np.float32)
-    proj = np.zeros((m.n, 3, 3), np.float32)
-    pen_k[est.driven] = est.gains.kp_per_s2 * mass[est.driven]
-    proj[est.driven] = est._axes.numpy()
-    xw = wp.array(x0.astype(np.float32), dtype=wp.vec3, device=d)
-    pk, pw = wp.array(pen_k, dtype=float, device=d), wp.array(proj, dtype=wp.mat33, device=d)
-    vin, out = wp.zeros(nn, dtype=wp.vec3, device=d), wp.zeros(nn, dtype=wp.vec3, device=d)
-    full = np.zeros((nn, 3))
-
-    def kmul(v):
-        v2 = v.reshape(3 * na, -1)
-        res = np.empty_like(v2)
-        for j in range(v2.shape[1]):
-            full[:] = 0.0
-            full[nodes] = v2[:, j].reshape(na, 3)
-            vin.assign(full.astype(np.float32))
-            out.zero_()
-            wp.launch(apply_stiffness, m.n, [xw, mp.vol0, mp.mu, mp.lam, pk, pw, dx, ny, nz, vin, out], device=d)
-            res[:, j] = out.numpy()[nodes].astype(np.float64).ravel()
-        return res.reshape(v.shape)
-
-    c = keep["coarse"]
-    S = a_c.shape[0]
-    Z = np.zeros((na, 3, c["E"].shape[0]))
-    for q in range(c["node_group"].shape[1]):
-        sh, g = c["node_share"][:, q], c["node_group"][:, q]
-        ok = np.nonzero(sh > 0)[0]
-        y = (X[ok] - c["centre"][g[ok]]) / c["radius"][g[ok], None]
-        zv = sh[ok, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y))
-        for k in range(S):
-            Z[ok, :, g[ok] * S + k] += zv[:, k, :]
-    Z = Z.reshape(3 * na, -1)
-    mw = np.repeat(node_mass, 3)
-    E, Mc = c["E"], c["Mc"]
-    Lc = np.linalg.cholesky(Mc)
-    Li = np.linalg.inv(Lc)
-    w2, V = np.linalg.eigh(Li @ E @ Li.T)
-    Phi = Li.T @ V
-    t2 = keep["target_per_s"] ** 2
-    w2 = np.maximum(w2, 0.0)
-    beta = np.where(w2 < t2, np.minimum(t2 / np.maximum(w2, 1e-300), 1.0e4), 1.0)
-    b = beta > 1.0
+    b = boosts > 1.0
     W = Z @ Phi[:, b]
-    keepf = (beta[b] - 1.0) / beta[b]
+    beta = boosts[b]
+    keepf = (beta - 1.0) / beta
 
-    def pinv(v):  # (M^-1 + W D W^T)^-1 = M - M W diag((beta-1)/beta) W^T M, W^T M W = I
-        v2 = v.reshape(3 * na, -1)
+    def pinv(v):
+        v2 = v.reshape(mw.size, -1)
         mv = mw[:, None] * v2
         return (mv - mw[:, None] * (W @ (keepf[:, None] * (W.T @ mv)))).reshape(v.shape)
 
     def pmul(v):
-        v2 = v.reshape(3 * na, -1)
-        return (v2 / mw[:, None] + W @ ((beta[b] - 1.0)[:, None] * (W.T @ v2))).reshape(v.shape)
+        v2 = v.reshape(mw.size, -1)
+        return (v2 / mw[:, None] + W @ ((beta - 1.0)[:, None] * (W.T @ v2))).reshape(v.shape)
 
-    n3 = 3 * na
-    ops = [LinearOperator((n3, n3), matvec=f, matmat=f, dtype=np.float64) for f in (kmul, pinv, pmul)]
-    uf = u.ravel()
+    n3 = mw.size
+    A, Bop, T = (LinearOperator((n3, n3), matvec=f, matmat=f, dtype=np.float64) for f in (kmul, pinv, pmul))
     rng = np.random.default_rng(0)
-    X0 = np.column_stack([uf] + [rng.standard_normal(n3) for _ in range(count - 1)])
-    vals, vecs = lobpcg(ops[0], X0, B=ops[1], M=ops[2], largest=False, maxiter=300, tol=1e-6)
-    order = np.argsort(vals)
-    mc_inv = np.linalg.inv(Mc)
-    uq = uf / np.sqrt(uf @ pinv(uf))
+    X0 = np.column_stack([u] + [rng.standard_normal(n3) for _ in range(count - 1)])
+    vals, vecs = lobpcg(A, X0, B=Bop, M=T, largest=False, maxiter=300, tol=1e-6)
+    mc_inv = np.linalg.inv(Z.T @ (mw[:, None] * Z))
+    uq = u / np.sqrt(u @ pinv(u))
     modes = []
-    for j in order:
+    for j in np.argsort(vals):
         v = vecs[:, j] / np.sqrt(vecs[:, j] @ pinv(vecs[:, j]))
         vmv = float(v @ (mw * v))
-        ztmv = Z.T @ (mw * v)
-        wtmv = W.T @ (mw * v)
-        amp = (np.linalg.norm(v.reshape(na, 3), axis=1) ** 2) * node_mass
-        top = np.sort(amp)[::-1]
+        ztmv, wtmv = Z.T @ (mw * v), W.T @ (mw * v)
+        amp = np.sort((mw * v * v).reshape(-1, 3).sum(1))[::-1]
         modes.append({"omega_dt": float(np.sqrt(max(vals[j], 0.0)) * dt), "overlap": float(abs(v @ pinv(uq))),
                       "in_coarse": float(ztmv @ mc_inv @ ztmv / vmv), "in_boosted": float(wtmv @ wtmv / vmv),
-                      "plain_omega_dt": float(np.sqrt(max(v @ kmul(v) / vmv, 0.0)) * dt), "top50": float(top[:50].sum() / top.sum())})
+                      "plain_omega_dt": float(np.sqrt(max(v @ kmul(v) / vmv, 0.0)) * dt), "top50": float(amp[:50].sum() / amp.sum())})
     return modes
 
 

@@ -291,7 +291,8 @@ class RigidModeAccelerator:
     whole organs); ``target_factor``: :data:`TARGET_FACTOR`.
 
     Attributes after :meth:`build`: ``frequencies_per_s`` (the coarse modes' own ``omega_j``), ``boosts``
-    (``beta_j``), ``target_per_s`` (``omega_t``); :meth:`switched_off_after` (the guard, :data:`GUARD_GROWTH`); ``layout`` (increases whenever the device arrays were re-allocated:
+    (``beta_j``), ``mode_shapes`` (``Phi``: their coefficients on the groups' motions, ``Phi^T M_c Phi = I``),
+    ``coarse`` (what :meth:`coarse_matrices` returned for the build), ``target_per_s`` (``omega_t``); :meth:`switched_off_after` (the guard, :data:`GUARD_GROWTH`); ``layout`` (increases whenever the device arrays were re-allocated:
     a captured graph that launched the old ones must be captured again)."""
 
     def __init__(self, model: MPMModel, target_factor: float = TARGET_FACTOR, modes: str = "rigid",
@@ -315,6 +316,8 @@ class RigidModeAccelerator:
         self.target_per_s = self.target_factor * math.pi * model.wave_speed_m_s / max(size_m, 10 * model.dx_mm * 1e-3)
         self.frequencies_per_s = np.zeros(0)
         self.boosts = np.zeros(0)
+        self.mode_shapes = np.zeros((0, 0))
+        self.coarse: dict = {}
         self.layout = 0
         self._capacity = 0
         self._built = False
@@ -513,6 +516,8 @@ class RigidModeAccelerator:
         B = Phi @ np.diag(boosts - 1.0) @ Phi.T
         self.frequencies_per_s = np.sqrt(w2)
         self.boosts = boosts
+        self.mode_shapes = Phi
+        self.coarse = c
         self._active = bool(boosts.max() >= MIN_BOOST)
         d = self.model.device
         na = c["nodes"].size
