@@ -138,6 +138,8 @@ def main(argv=None):
     if a.fem_convergence:
         return fem_convergence(size, tuple(int(v) for v in a.levels.split(",")), a.scenes and a.scenes.split(","),
                                a.loads and a.loads.split(","))
+    if a.affine and not a.acceleration:
+        p.error("--affine adds a column to --acceleration's table; give both")
     rules = SOLVERS if a.quasistatic else ACCELERATION if a.acceleration else RULES
     if a.acceleration and a.affine:
         rules = rules + [("settled, affine cube motions", SolverConfig(device="cpu", rigid_mode_basis="affine"), SETTLED, None)]
