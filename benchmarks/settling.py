@@ -29,6 +29,7 @@ import warp as wp  # noqa: E402
 
 from warpmpm import InPlaneAffine, build_model, make_phantom  # noqa: E402
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
+from warpmpm.errors import InputError  # noqa: E402
 from warpmpm.slices import DrivingSlice  # noqa: E402
 from warpmpm.solver import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASIS, SolverConfig  # noqa: E402
 from warpmpm.targets import affine_targets  # noqa: E402
@@ -88,13 +89,11 @@ def main(argv=None):
     if bad:
         p.error(f"unknown scene(s) {bad}: choose from {sorted(SCENES)}")
     variants = a.variants.split(",")
-    for v in variants:
-        if v not in ("off", "organs"):
-            try:
-                if float(v[6:] if v.startswith("affine") and len(v) > 6 else (RIGID_MODE_AGGREGATE_MM if v == "affine" else v)) <= 0:
-                    raise ValueError
-            except ValueError:
-                p.error(f"variant {v!r}: 'off', 'organs', a cube edge in mm > 0, or 'affine' / 'affineNN' (NN mm cubes, affine motions)")
+    for v in variants:  # each variant's configuration, built once here to check it (SolverConfig refuses a cube <= 0)
+        try:
+            variant_config(v)
+        except (ValueError, InputError):
+            p.error(f"variant {v!r}: 'off', 'organs', a cube edge in mm > 0, or 'affine' / 'affineNN' (NN mm cubes, affine motions)")
     if a.max_steps < 500:
         p.error("--max-steps must be at least 500")
     wp.config.log_level = wp.LOG_ERROR

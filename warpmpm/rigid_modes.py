@@ -58,7 +58,7 @@ import warp as wp
 
 from .errors import InputError
 from .model import ParticleModel
-from .solver import RIGID_MODE_AGGREGATE_MM, MPMModel, State
+from .solver import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASES, MPMModel, State
 
 __all__ = ["RigidModeAccelerator", "aggregate_groups", "TARGET_FACTOR", "AGGREGATE_MM", "MAX_BOOST"]
 
@@ -302,8 +302,8 @@ class RigidModeAccelerator:
                              "SolverConfig(contact='sticky') or turn it off (SolverConfig.rigid_mode_acceleration='off')")
         if not (isinstance(target_factor, (int, float)) and math.isfinite(target_factor) and target_factor > 0):
             raise InputError(f"rigid-mode target factor must be a finite number > 0, got {target_factor!r}")
-        if modes not in ("rigid", "affine"):
-            raise InputError(f"rigid-mode acceleration modes must be 'rigid' or 'affine', got {modes!r}")
+        if modes not in RIGID_MODE_BASES:
+            raise InputError(f"rigid-mode acceleration modes must be one of {', '.join(RIGID_MODE_BASES)}, got {modes!r}")
         self.model = model
         #: the group of each particle whose motions form the coarse space
         self.groups = aggregate_groups(model.particles, aggregate_mm)

@@ -129,6 +129,8 @@ RIGID_MODE_AGGREGATE_MM = 25.0
 #: the boosted coarse modes, and the ~1 % outside keeps its full inertia, so a mode's boost is capped at about one over
 #: that fraction (benchmarks/README.md); affine cubes hold more of it.
 RIGID_MODE_BASIS = "rigid"
+#: the coarse bases there are
+RIGID_MODE_BASES = ("rigid", "affine")
 
 
 @dataclass(frozen=True)
@@ -293,8 +295,8 @@ class SolverConfig:
             raise InputError(f"SolverConfig.method {self.method!r} handles sticky contact only; use contact='sticky' or the explicit method")
         if self.contact not in ("sticky", "sliding"):
             raise InputError(f"SolverConfig.contact must be 'sticky' or 'sliding', got {self.contact!r}")
-        if self.rigid_mode_basis not in ("rigid", "affine"):
-            raise InputError(f"SolverConfig.rigid_mode_basis must be 'rigid' or 'affine', got {self.rigid_mode_basis!r}")
+        if self.rigid_mode_basis not in RIGID_MODE_BASES:
+            raise InputError(f"SolverConfig.rigid_mode_basis must be one of {', '.join(RIGID_MODE_BASES)}, got {self.rigid_mode_basis!r}")
         if self.rigid_mode_acceleration not in ("auto", "on", "off"):
             raise InputError(f"SolverConfig.rigid_mode_acceleration must be 'auto', 'on' or 'off', got {self.rigid_mode_acceleration!r}")
         if self.rigid_mode_acceleration == "on" and self.contact != "sticky":
