@@ -26,7 +26,7 @@ it is: it swings at ``omega_t`` instead of ``omega_j``, and the adaptive damping
 ``aggregate_mm`` of one organ (:func:`aggregate_groups`): with whole organs as groups a stiff organ's bending is still
 slow; with 25 mm cubes the default phantom settles in 1,700 steps instead of 4,700, and in 1,100 when each cube
 moves with its 12 affine motions (:attr:`SolverConfig.rigid_mode_basis <warpmpm.solver.SolverConfig.rigid_mode_basis>`;
-at 1.3-1.45x the work a step, so not the default; benchmarks/README.md).
+but more work a step, so about the same time a frame: not the default; benchmarks/README.md).
 
 What it does not change. The equilibrium: where the force vanishes, so does the correction (it preconditions the
 relaxation, it is not physics). Stability: the eigenvalues of the preconditioned stiffness ``(M^-1 + Z B Z^T) K``

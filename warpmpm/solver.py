@@ -123,7 +123,9 @@ RIGID_MODE_AGGREGATE_MM = 25.0
 #: answers 0.02 mm apart), but 1.3-1.45x the time a step (twice the coarse modes, single-threaded), so 0.82x and 0.94x
 #: the time in two runs; the resolution-3 phantom 600 steps either way at 1.2-1.4x the time; the FEM blocks as close or
 #: closer (the hanging kidney block's scale 14.6 -> 13.2 %) at 0.75-1.33x the rigid one's time. Not enough to change
-#: the default.
+#: the default. Re-measured in the twelfth session, with the coarse level's product over the boosted modes only and
+#: split over the threads: 23.7 and 25.1 s against 22.5 and 29.9 s for rigid (two runs, swapped order), still within
+#: the machine's drift.
 #: With rigid cubes the motion left at step 1,000 is the stomach moving as a rigid body (93 % of its motion) toward rest
 #: at ``omega dt`` ~0.006, 7x slower than the coarse modes' target: the slowest accelerated modes lie ~99 % (by mass) in
 #: the boosted coarse modes, and the ~1 % outside keeps its full inertia, so a mode's boost is capped at about one over
