@@ -46,7 +46,8 @@ def bytes_per_particle(m: MPMModel, s: MPMSolver, states) -> float:
     total = 0
     for arr in [m.mass, m.vol0, m.mu, m.lam, s.zero_force] + [getattr(st, n) for st in states for n in ("x", "v", "C", "F")]:
         total += arr.capacity
-    grid = s.grid_m.capacity + s.grid_mv.capacity + s.grid_v.capacity
+    scatter = s.grid_m.capacity + s.grid_mv.capacity if s.fields else s.grid_mm.capacity
+    grid = scatter + s.grid_v.capacity
     return total / m.n, grid
 
 

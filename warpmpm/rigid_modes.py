@@ -267,7 +267,7 @@ def coarse_guard(y: wp.array(dtype=float), guard: wp.array(dtype=float), growth:
 def prolong_velocity(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int, ndim=2), node_share: wp.array(dtype=float, ndim=2),
                      centre: wp.array(dtype=wp.vec3), inv_len: wp.array(dtype=float), y: wp.array(dtype=float),
                      damping: wp.array(dtype=float), dx: float, affine: int, guard: wp.array(dtype=float), first: int,
-                     grid_v: wp.array(dtype=wp.vec3, ndim=3)):
+                     grid_v: wp.array(dtype=wp.vec4, ndim=3)):
     """``v += damping Z y``: each group's share of its boosted rigid (or affine) velocity change at active node
     ``first + tid`` (none once :func:`coarse_guard` has switched the correction off)."""
     a = first + wp.tid()
@@ -294,7 +294,8 @@ def prolong_velocity(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int,
             dv += s * v
             hit = 1
     if hit != 0:
-        grid_v[ijk[0], ijk[1], ijk[2]] = grid_v[ijk[0], ijk[1], ijk[2]] + damping[0] * dv
+        dv = damping[0] * dv
+        grid_v[ijk[0], ijk[1], ijk[2]] = grid_v[ijk[0], ijk[1], ijk[2]] + wp.vec4(dv[0], dv[1], dv[2], 0.0)
 
 
 @wp.kernel
