@@ -513,7 +513,7 @@ class RigidModeAccelerator:
         """``E = sum_p Q_p^T Q_p`` (K, K) from the (particle, group) entries' energy rows ``Q`` (entries, 10, stride),
         the entries sorted by particle and, within one, by group (``order``), each particle's first sorted entry and
         count: :func:`energy_blocks` over the particles, split over the solver's CPU threads (a copy each, summed;
-        float64). Replaces a batched NumPy product per particle: 2.1 -> 1.2 s (rigid) and 3.5 -> ~2 s (affine) on the
+        float64). Replaces a batched NumPy product per particle: 2.1 -> 1.2 s (rigid) and 3.5 -> 2.6 s (affine) on the
         default phantom, same matrix within 5e-15."""
         d = self.model.device
         parts = parallel.split(starts.size, cpu_threads(self.model.config, d))
