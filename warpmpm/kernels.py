@@ -167,13 +167,21 @@ def p2g(
     m = mass[p]
     affine = apic_stress_affine(F[p], C[p], m, vol0[p], mu[p], lam[p], dt, inv_dx)
     impulse = dt * f_ext[p]
-    mom = m * v[p] + impulse
+    # what goes to node abc is w (mom + affine (abc - fx) dx) = w (u0 + a A0 + b A1 + c A2), A_k the k-th column of
+    # affine dx: built up along the loops instead of a matrix-vector product a node
+    Adx = affine * dx
+    A0 = wp.vec3(Adx[0, 0], Adx[1, 0], Adx[2, 0])
+    A1 = wp.vec3(Adx[0, 1], Adx[1, 1], Adx[2, 1])
+    A2 = wp.vec3(Adx[0, 2], Adx[1, 2], Adx[2, 2])
+    u0 = m * v[p] + impulse - Adx * fx
     for a in range(3):
+        ua = u0 + float(a) * A0
         for b in range(3):
+            uab = ua + float(b) * A1
+            wab = wx[a] * wy[b]
             for c in range(3):
-                w = wx[a] * wy[b] * wz[c]
-                dpos = (wp.vec3(float(a), float(b), float(c)) - fx) * dx
-                q = w * (mom + affine * dpos)
+                w = wab * wz[c]
+                q = w * (uab + float(c) * A2)
                 wp.atomic_add(grid_mm, part_nx + base[0] + a, base[1] + b, base[2] + c, wp.vec4(q[0], q[1], q[2], w * m))
     if want_force != 0:  # a second pass, so the loop above stays that of a step without it (a branch in it cost 17 %)
         stress = affine - m * C[p]
@@ -395,6 +403,43 @@ def is_finite_vec(a: wp.vec3):
     return wp.isfinite(a[0]) and wp.isfinite(a[1]) and wp.isfinite(a[2])
 
 
+@wp.func
+def gather_velocity(grid_v: wp.array(dtype=wp.vec4, ndim=3), base: wp.vec3i, fx: wp.vec3, wx: wp.vec3, wy: wp.vec3, wz: wp.vec3,
+                    inv_dx: float):
+    """A particle's velocity ``v = sum_i w_i v_i`` and APIC matrix ``C = 4/dx^2 sum_i w_i v_i (x_i - x_p)^T`` from its
+    3x3x3 stencil, the weights factorised by axis: with ``x_i - x_p = (abc - fx) dx``, ``C = 4/dx (T - v fx^T)`` where
+    column ``k`` of ``T`` sums ``w_i v_i`` times the node's k-th stencil index, and every sum runs innermost over z,
+    then y, then x (6 multiply-adds a node instead of ~30; measured: the gather 13.4 -> 8.9 ms on 113k particles, one
+    thread; the same v and C to float32 rounding, 3e-7 and 6e-7 relative)."""
+    v = wp.vec3(0.0)
+    t0 = wp.vec3(0.0)
+    t1 = wp.vec3(0.0)
+    t2 = wp.vec3(0.0)
+    for a in range(3):
+        sa = wp.vec3(0.0)
+        sb = wp.vec3(0.0)
+        sc = wp.vec3(0.0)
+        for b in range(3):
+            r = wp.vec3(0.0)
+            rc = wp.vec3(0.0)
+            for c in range(3):
+                g4 = grid_v[base[0] + a, base[1] + b, base[2] + c]
+                gw = wz[c] * wp.vec3(g4[0], g4[1], g4[2])
+                r += gw
+                rc += float(c) * gw
+            sa += wy[b] * r
+            sb += (wy[b] * float(b)) * r
+            sc += wy[b] * rc
+        v += wx[a] * sa
+        t0 += (wx[a] * float(a)) * sa
+        t1 += wx[a] * sb
+        t2 += wx[a] * sc
+    C = wp.mat33(t0[0] - v[0] * fx[0], t1[0] - v[0] * fx[1], t2[0] - v[0] * fx[2],
+                 t0[1] - v[1] * fx[0], t1[1] - v[1] * fx[1], t2[1] - v[1] * fx[2],
+                 t0[2] - v[2] * fx[0], t1[2] - v[2] * fx[1], t2[2] - v[2] * fx[2])
+    return v, (4.0 * inv_dx) * C
+
+
 @wp.kernel
 def g2p(
     grid_v: wp.array(dtype=wp.vec4, ndim=3),
@@ -427,17 +472,7 @@ def g2p(
     base, fx, wx, wy, wz = stencil(xp, inv_dx)
     if field_nx > 0:
         base = wp.vec3i(base[0] + field[p] * field_nx, base[1], base[2])
-    new_v = wp.vec3(0.0)
-    new_C = wp.mat33(0.0)
-    for a in range(3):
-        for b in range(3):
-            for c in range(3):
-                w = wx[a] * wy[b] * wz[c]
-                dpos = (wp.vec3(float(a), float(b), float(c)) - fx) * dx
-                g4 = grid_v[base[0] + a, base[1] + b, base[2] + c]
-                gv = wp.vec3(g4[0], g4[1], g4[2])
-                new_v += w * gv
-                new_C += (4.0 * inv_dx * inv_dx * w) * wp.outer(gv, dpos)
+    new_v, new_C = gather_velocity(grid_v, base, fx, wx, wy, wz, inv_dx)
     # Compensated (Kahan) position update: near equilibrium a step moves a particle by less than float32
     # resolves at its position (~7e-9 m at 6 cm from the grid origin) while F integrates the same velocity
     # gradient; positions that cannot follow F let stress build with no motion to balance it (measured:
