@@ -1,6 +1,6 @@
 """Frame times against an earlier commit of this repository, alternated in one session (issue 19's same-run peer).
 
-    python benchmarks/against_code.py [--rev 86f31b4] [--steps 2,1] [--pairs 4] [--stream 0]
+    python benchmarks/against_code.py [--rev 86f31b4] [--steps 2,1] [--pairs 4] [--stream 0] [--raw against_code]
 
 Issue 19 set its frame targets against the code of the day it was filed (commit ``86f31b4``): a first frame of the
 default phantom 5.0 -> 2.5 s (0.5x), a paper-resolution frame 17.8 -> 8 s (0.45x), a streamed frame 1.23 -> 0.4 s
@@ -18,7 +18,7 @@ temporary git worktree, then alternates the two codes ``--pairs`` times (the oth
 
 Each code is imported from its own tree (the editable install's import hook is set aside in the child process).
 Prints a table (medians over the pairs, the ratio new / old per pair and its median) and keeps every run in
-``results/against_code.json``.
+``results/<--raw>.json``.
 """
 
 from __future__ import annotations
@@ -89,6 +89,7 @@ def main(argv=None):
     p.add_argument("--steps", default="2,1", help="particle steps of the frames, comma-separated (empty: none)")
     p.add_argument("--pairs", type=int, default=4)
     p.add_argument("--stream", type=int, default=0, help="frames of the streaming comparison (0: none)")
+    p.add_argument("--raw", default="against_code", help="name of the raw-numbers file in benchmarks/results/ (without .json)")
     a = p.parse_args(argv)
     try:
         steps = [int(s) for s in a.steps.split(",") if s.strip()]
@@ -140,7 +141,7 @@ def main(argv=None):
         rows.append({"what": what, "old_s": med_old, "new_s": med_new, "ratios": ratios, "median_ratio": float(np.median(ratios))})
         print(f"| {what} | {med_old:.2f} | {med_new:.2f} | {', '.join(f'{x:.2f}' for x in ratios)} | **{np.median(ratios):.2f}** | "
               f"{o['steps']} / {n['steps']} | {o['error_mm']:.2f} / {n['error_mm']:.2f} |")
-    raw.save("against_code", {"rev": a.rev, "head": head, "runs": runs, "table": rows})
+    raw.save(a.raw, {"rev": a.rev, "head": head, "runs": runs, "table": rows})
 
 
 if __name__ == "__main__":
