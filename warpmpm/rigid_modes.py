@@ -603,6 +603,8 @@ class RigidModeAccelerator:
         self._W.assign(W)
         self._WT.assign(np.ascontiguousarray(W.T))
         self._boost.assign(beta1)
+        # each thread's nodes, boosted modes and coarse rows for :meth:`correct` (fixed until the next build)
+        self._ranges = tuple(parallel.split(n, self.threads) for n in (self._capacity, self.n_boosted, K))
         self._slots.zero_()
         self._guard.assign(np.array([0.0, 0.0, 1.0, -1.0, 0.0]))
         self._built = True
@@ -622,20 +624,20 @@ class RigidModeAccelerator:
         a = int(self.affine)
         k = self._g.shape[0]
         nb = self.n_boosted
-        parts = 1 if wp.get_device(d).is_capturing else self.threads
+        whole = wp.get_device(d).is_capturing  # a captured graph must hold whole-array launches
+        nodes, modes, rows = ([(0, self._capacity)], [(0, nb)], [(0, k)]) if whole else self._ranges
 
-        def split(n, launch):
-            ranges = parallel.split(n, parts)
+        def split(ranges, launch):
             parallel.run_together(lambda t=t, lo=lo, hi=hi: launch(t, lo, hi) for t, (lo, hi) in enumerate(ranges))
 
-        split(self._capacity, lambda t, lo, hi: wp.launch(
+        split(nodes, lambda t, lo, hi: wp.launch(
             restrict_force, hi - lo, [self._nodes, self._node_group, self._node_share, self._centre, self._inv_len, force_sum,
                                       self._dx, a, lo, t * SLOTS, self._slots], device=d))
         wp.launch(reduce_slots, k, [self._slots, self._g], device=d)
-        split(nb, lambda t, lo, hi: wp.launch(coarse_project, hi - lo, [self._WT, self._boost, self._g, lo, self._h], device=d))
-        split(k, lambda t, lo, hi: wp.launch(coarse_expand, hi - lo, [self._W, self._h, nb, lo, self._y], device=d))
+        split(modes, lambda t, lo, hi: wp.launch(coarse_project, hi - lo, [self._WT, self._boost, self._g, lo, self._h], device=d))
+        split(rows, lambda t, lo, hi: wp.launch(coarse_expand, hi - lo, [self._W, self._h, nb, lo, self._y], device=d))
         wp.launch(coarse_guard, 1, [self._y, self._guard, GUARD_GROWTH, float(GUARD_STEPS)], device=d)
-        split(self._capacity, lambda t, lo, hi: wp.launch(
+        split(nodes, lambda t, lo, hi: wp.launch(
             prolong_velocity, hi - lo, [self._nodes, self._node_group, self._node_share, self._centre, self._inv_len, self._y,
                                         damping, self._dx, a, self._guard, lo, grid_v], device=d))
 
