@@ -537,6 +537,14 @@ class MPMSolver:
         self._ranges = parallel.split(model.n, self.threads)
         self.threads = len(self._ranges)
         self._node_ranges = parallel.split(shape[0], self.threads)
+        #: the grid update visits only the blocks of nodes that hold mass (:func:`warpmpm.kernels.grid_update_blocks`;
+        #: sticky contact on the CPU): P2G stamps the blocks of ``kernels.BLOCK``^3 nodes it scatters into with the
+        #: step's number. On CUDA every node has a thread of its own and the dense update is kept.
+        self.sparse_update = not self.fields and not str(d).startswith("cuda")
+        blocks = tuple(-(-n // kernels.BLOCK) for n in shape) if self.sparse_update else (1, 1, 1)
+        self._stamps = wp.zeros(blocks, dtype=int, device=d)
+        self._updated = wp.zeros(blocks, dtype=int, device=d)
+        self._block_ranges = parallel.split(blocks[0], self.threads)
         self._views = parallel.ChunkViews(self._ranges)
         copies = (stacked[0] * self.threads, stacked[1], stacked[2])
         if self.fields:  # sliding contact: mass and momentum per organ field, and the mass gradient
@@ -633,7 +641,7 @@ class MPMSolver:
         parts = 1 if self.threads == 1 or wp.get_device(d).is_capturing else self.threads
         if parts == 1:
             self._p2g_part(0, state_in.x, state_in.v, state_in.C, state_in.F, force, [m.mass, m.vol0, m.mu, m.lam, m.field], dt)
-            self._grid_update(0, nx, damping, 1)
+            self._grid_update(0, 0, damping, 1)
         else:
             n = len(self._ranges)
             x_in, v_in, C_in, F_in, f_in = (self._views(a) for a in (state_in.x, state_in.v, state_in.C, state_in.F, force))
@@ -642,7 +650,7 @@ class MPMSolver:
             pv = [self._views(a) for a in (m.mass, m.vol0, m.mu, m.lam, m.field)]
             parallel.run_together(
                 lambda k=k: self._p2g_part(k, x_in[k], v_in[k], C_in[k], F_in[k], f_in[k], [a[k] for a in pv], dt) for k in range(n))
-            parallel.run_together(lambda k=k: self._grid_update(*self._node_ranges[k], damping, n) for k in range(n))
+            parallel.run_together(lambda k=k: self._grid_update(k, n, damping, n) for k in range(n))
         if self._accelerating():
             self.accelerator.correct(self._force_sum, damping, self.grid_v)
         if parts == 1:
@@ -671,13 +679,27 @@ class MPMSolver:
                                                        k * nx * m.n_fields, self.grid_m, self.grid_mv, self.grid_g], device=m.device)
         else:
             wp.launch(kernels.p2g, x.shape[0], [x, v, C, F, force, mass, vol0, mu, lam, self._dx, dt, k * nx,
-                                                int(self._accelerating()), self.grid_mm, self._grid_f],
+                                                int(self._accelerating()), self._stamp(), self.grid_mm, self._grid_f,
+                                                self._stamps],
                       device=m.device)
 
-    def _grid_update(self, lo, hi, damping, parts):
-        """Grid update of the node slab ``lo <= i < hi`` along x, adding ``parts`` copies of the scattered sums."""
+    def _stamp(self) -> int:
+        """This step's number as P2G stamps it into the node blocks it scatters into (never 0, the blocks' start; 0
+        when the update is dense: no stamps)."""
+        return self.step_count % 1_000_000_000 + 1 if self.sparse_update else 0
+
+    def _grid_update(self, k, n, damping, parts):
+        """Grid update of thread ``k``'s slab along x (of ``n`` threads; 0 of 1 for all of it), adding ``parts`` copies
+        of the scattered sums."""
         m = self.model
         cfg = m.config
+        if self.sparse_update:
+            lo, hi = self._block_ranges[k] if n > 1 else (0, self._stamps.shape[0])
+            wp.launch(kernels.grid_update_blocks, (hi - lo, *self._stamps.shape[1:]),
+                      [self.grid_mm, parts, lo, self._stamps, self._stamp(), self._updated, damping, cfg.wall_cells,
+                       int(self._accelerating()), self._grid_f, self.grid_v, self._force_sum], device=m.device)
+            return
+        lo, hi = self._node_ranges[k] if n > 1 else (0, m.grid_shape[0])
         dim = (hi - lo, m.grid_shape[1], m.grid_shape[2])
         if self.fields:
             wp.launch(kernels.grid_update_fields, dim, [self.grid_m, self.grid_mv, self.grid_g, m.n_fields, m.grid_shape[0], parts, lo,
