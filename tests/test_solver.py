@@ -253,6 +253,20 @@ def test_polar_rotation_equals_svd_rotation():
     for f, r in zip(F.astype(np.float64), R.numpy()):
         u, _, vt = np.linalg.svd(f)
         np.testing.assert_allclose(r, u @ vt, atol=2e-5)
+    # tissue strains (1e-4 to 5 %, any rotation): the rotation to float32 resolution, which the stress 2 mu (F - R) F^T
+    # needs (|F - R| is the strain itself); the iteration stops on its predicted error (err^2 / 2)
+    small = []
+    for strain in (1e-4, 1e-3, 1e-2, 5e-2):
+        for _ in range(50):
+            q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+            q *= np.sign(np.linalg.det(q))
+            e = rng.uniform(-strain, strain, (3, 3))
+            small.append(q @ (np.eye(3) + 0.5 * (e + e.T)))
+    F = np.array(small, dtype=np.float32)
+    R = wp.zeros(len(F), dtype=wp.mat33, device="cpu")
+    wp.launch(rot, len(F), [wp.array(F, dtype=wp.mat33, device="cpu"), R], device="cpu")
+    u, _, vt = np.linalg.svd(F.astype(np.float64))
+    assert np.abs(R.numpy() - u @ vt).max() < 5e-7
 
 
 @pytest.mark.parametrize("kw,msg", [

@@ -67,6 +67,13 @@ def polar_rotation(F: wp.mat33):
     ``pow`` was the iteration's dearest operation); the loop stops when converged. Measured on 113k particles
     (one thread): 17.9 -> 10.3 ms for 1 % strains, 20.8 -> 15.9 ms for 5 % strains with any rotation, the same
     rotation within 2.4e-7.
+
+    Converged: near R the iteration converges quadratically (``X = R (I + E)`` -> ``R (I + E^2 / 2)``), so a step of
+    size ``err`` (max row sum of ``Y - X``) leaves an error of about ``err^2 / 2``; the loop stops once that is below
+    float32 resolution (err < 3e-4) instead of waiting for a step below 1e-6, which cost one more iteration. Measured
+    on 113k rotated symmetric strains, one thread, against the 1e-6 rule in the same process: the same largest
+    difference from the float64 SVD rotation (1.3-1.6e-7 at strains 1e-4 to 0.3), 0.60x the time at 1e-4, 0.77x at
+    1e-2, 0.98-1.0x at 3-5 %.
     """
     X = F
     done = int(0)
@@ -82,7 +89,7 @@ def polar_rotation(F: wp.mat33):
             err = wp.max(wp.max(wp.abs(D[0, 0]) + wp.abs(D[0, 1]) + wp.abs(D[0, 2]), wp.abs(D[1, 0]) + wp.abs(D[1, 1]) + wp.abs(D[1, 2])),
                          wp.abs(D[2, 0]) + wp.abs(D[2, 1]) + wp.abs(D[2, 2]))
             X = Y
-            if err < 1.0e-6:
+            if err < 3.0e-4:  # quadratic convergence: the error left is ~err^2 / 2 < 4.5e-8, float32 resolution
                 done = 1
                 break
     if done == 0:
