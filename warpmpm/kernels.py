@@ -13,7 +13,8 @@ The step, for particles p and grid nodes i:
    (driving) force ``w dt f_p``, scattered with atomics. Stress and scatter are one pass: the stress
    is never written to memory and read back (72 bytes a particle a step less).
 2. ``grid_update``: velocity = momentum / mass, damping, wall conditions; it zeroes the mass and
-   momentum it has read (no separate clearing pass).
+   momentum it has read (no separate clearing pass). On the CPU ``grid_update_blocks`` does the same over
+   the blocks of nodes that hold mass only (P2G stamps them), with the dense update's result.
 3. ``g2p``: particle velocity, affine C, position, ``F <- (I + dt C) F``, and the guards that keep
    every particle inside the grid and flag non-finite values.
 4. With adaptive damping (the settled mode), ``stiffness_rayleigh`` and the one-thread ``adapt_damping``
