@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from warpmpm.errors import InputError
 from warpmpm.scenes import block_model, merge_models
 from warpmpm.solver import MPMModel, MPMSolver, SimulationError, SolverConfig
 
@@ -66,11 +67,11 @@ def test_the_sparse_grid_update_is_the_dense_one_node_for_node(threads):
     velocity is the dense update's to the bit."""
     pm = _scene()
     out = {}
-    for sparse in (True, False):
+    for sparse in (True, False, "toggled"):
         m = MPMModel(pm, SolverConfig(device="cpu", cpu_threads=threads, damping_per_s=0.0, bonded=()))
         s = MPMSolver(m)
         assert s.sparse_update  # the default on the CPU
-        s.sparse_update = sparse
+        s.sparse_update = sparse is True
         a, b = m.state(), m.state()
         v = np.zeros((pm.n, 3), dtype=np.float32)
         soft = slice(0, pm.n // 2)
@@ -79,14 +80,51 @@ def test_the_sparse_grid_update_is_the_dense_one_node_for_node(threads):
         a.v.assign(v)
         seen = set()
         for step in range(300):
+            if sparse == "toggled":  # dense from step 0, sparse from 100 (after dense steps left no block record), dense again
+                s.sparse_update = 100 <= step < 200
             s.step(a, b)
             a, b = b, a
-            if sparse and step % 10 == 0:
+            if sparse is True and step % 10 == 0:
                 seen.add(tuple(np.flatnonzero(s._updated.numpy())))
         out[sparse] = (a.x.numpy(), a.F.numpy(), s.grid_v.numpy(), seen)
     assert len(out[True][3]) > 2  # the set of blocks holding mass changed during the run
-    x_sparse, F_sparse, v_sparse, _ = out[True]
     x_dense, F_dense, v_dense, _ = out[False]
     assert (a.positions_mm()[soft, 1] - pm.positions_mm[soft, 1]).mean() > 15.0  # the soft block did fly (mm)
-    assert np.array_equal(x_sparse, x_dense) and np.array_equal(F_sparse, F_dense)
-    assert np.array_equal(v_sparse, v_dense)
+    for variant in (True, "toggled"):
+        x_sparse, F_sparse, v_sparse, _ = out[variant]
+        assert np.array_equal(x_sparse, x_dense) and np.array_equal(F_sparse, F_dense)
+        assert np.array_equal(v_sparse, v_dense)
+
+
+def test_the_sparse_update_is_refused_where_there_are_no_block_stamps():
+    """Sliding contact keeps a grid per organ and the dense update: asking it for the sparse one is a clear error,
+    not an index out of range."""
+    m = MPMModel(_scene(), SolverConfig(device="cpu", contact="sliding", bonded=()))
+    s = MPMSolver(m)
+    assert not s.sparse_update
+    s.sparse_update = False
+    with pytest.raises(InputError, match="sticky contact only"):
+        s.sparse_update = True
+
+
+def test_switching_back_to_the_sparse_update_clears_what_the_dense_steps_left():
+    """Dense steps keep no record of the blocks that held mass: the first sparse step after them visits every block,
+    so where the particles were (moved away 15 mm, more than a block, between the two steps) the grid velocity is
+    zero as the dense update leaves it, not what the last dense step left there."""
+    pm = _scene()
+    grids = {}
+    for switch in (False, True):
+        m = MPMModel(pm, SolverConfig(device="cpu", cpu_threads=1, damping_per_s=0.0, bonded=()))
+        s = MPMSolver(m)
+        s.sparse_update = False
+        a, b = m.state(), m.state()
+        a.v.assign(np.tile(np.array([0.0, 1.0, 0.0], dtype=np.float32), (pm.n, 1)))
+        for _ in range(5):
+            s.step(a, b)
+            a, b = b, a
+        a.x.assign(a.x.numpy() + np.array([0.0, 0.015, 0.0], dtype=np.float32))  # m: every particle 15 mm further
+        s.sparse_update = switch
+        s.step(a, b)
+        grids[switch] = s.grid_v.numpy()
+    assert np.abs(grids[False]).max() > 0.5  # the grid moves (m/s)
+    assert np.array_equal(grids[True], grids[False])

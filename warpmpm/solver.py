@@ -540,8 +540,9 @@ class MPMSolver:
         #: the grid update visits only the blocks of nodes that hold mass (:func:`warpmpm.kernels.grid_update_blocks`;
         #: sticky contact on the CPU): P2G stamps the blocks of ``kernels.BLOCK``^3 nodes it scatters into with the
         #: step's number. On CUDA every node has a thread of its own and the dense update is kept.
-        self.sparse_update = not self.fields and not str(d).startswith("cuda")
-        blocks = tuple(-(-n // kernels.BLOCK) for n in shape) if self.sparse_update else (1, 1, 1)
+        self._sparse_capable = not self.fields and not str(d).startswith("cuda")
+        self._sparse_update = self._sparse_capable
+        blocks = tuple(-(-n // kernels.BLOCK) for n in shape) if self._sparse_capable else (1, 1, 1)
         self._stamps = wp.zeros(blocks, dtype=int, device=d)
         self._updated = wp.zeros(blocks, dtype=int, device=d)
         self._block_ranges = parallel.split(blocks[0], self.threads)
@@ -584,6 +585,24 @@ class MPMSolver:
         self._dx = dx_m
         self._x_min = 1.0 * dx_m
         self._x_max = wp.vec3(*[(s - 2.0) * dx_m for s in shape])
+
+    @property
+    def sparse_update(self) -> bool:
+        """Whether the grid update visits only the node blocks that hold mass (:func:`warpmpm.kernels.grid_update_blocks`):
+        True on the CPU with sticky contact, where the solver keeps the blocks' stamps. It may be set to False (every
+        node, the dense update: the same grid to the bit) and back; True is refused where there are no stamps (CUDA,
+        sliding contact)."""
+        return self._sparse_update
+
+    @sparse_update.setter
+    def sparse_update(self, value: bool) -> None:
+        value = bool(value)
+        if value and not self._sparse_capable:
+            raise InputError("the sparse grid update runs on the CPU with sticky contact only: this solver was built for "
+                             f"{'sliding contact' if self.fields else self.model.device}, without the node blocks' stamps")
+        if value and not self._sparse_update:
+            self._updated.fill_(1)  # the dense steps left no record of which blocks held mass: visit every block once
+        self._sparse_update = value
 
     def set_accelerator(self, accelerator) -> None:
         """Use ``accelerator`` (a :class:`warpmpm.rigid_modes.RigidModeAccelerator`, or None for none) in every step
