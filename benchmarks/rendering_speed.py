@@ -3,9 +3,10 @@
 The cine tracker renders its current estimate on each frame's plane (:func:`warpmpm.rendering.render_plane`) and
 the ground truths warp the whole planning volume (:func:`warpmpm.rendering.warp_volume`). Both build the backward
 displacement field by two normalised Gaussian fills, 4 mm near the organs and 25 mm far from them. ``now`` smooths
-the far fill on cells of about a quarter of its width and, for a frame's slab, over the whole planning grid;
-``previous`` (the code before the fourteenth session, emulated in the same process) smoothed it on every voxel of
-the slab. On the default phantom (seed 0, 1.33 x 1.33 x 3 mm voxels, psdl, particle step 2: 28k particles) moved
+the far fill on cells of about a quarter of its width and, for a frame's slab, over everything within three far
+sigmas of it, and returns a frame's field on its thickness only (the near fill smoothed across the slab, then along
+the plane over that thickness); ``previous`` (the code before the fourteenth session, emulated in the same process)
+smoothed the far fill on every voxel of the slab and returned the whole slab's field. On the default phantom (seed 0, 1.33 x 1.33 x 3 mm voxels, psdl, particle step 2: 28k particles) moved
 by a smooth non-rigid motion (10 mm superior-inferior breathing that grows from one end of the body to the other,
 3 degrees about the axial axis), for a 6 mm sagittal frame through the pancreas:
 
@@ -44,7 +45,7 @@ class Previous:
     def __enter__(self):
         self.cells, self.field = rendering.FAR_CELLS_PER_SIGMA, rendering.backward_displacement
         rendering.FAR_CELLS_PER_SIGMA = 1e9
-        rendering.backward_displacement = lambda g, p, x, s=4.0, f=25.0, far_geometry=None: self.field(g, p, x, s, f)
+        rendering.backward_displacement = lambda g, p, x, s=4.0, f=25.0, **ignored: self.field(g, p, x, s, f)
 
     def __exit__(self, *exc):
         rendering.FAR_CELLS_PER_SIGMA, rendering.backward_displacement = self.cells, self.field
