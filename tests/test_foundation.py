@@ -185,3 +185,29 @@ def test_a_label_map_on_a_reoriented_grid_is_resampled_onto_the_image(tmp_path, 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         load_case(tmp_path / "l.nii.gz", tmp_path / "i.nii.gz")  # the same grid: no warning
+
+
+def test_merged_models_share_one_grid():
+    """merge_models puts both blocks on one grid covering them: a slice index names the same plane for both blocks'
+    particles (each particle's index is where it lies), the grid's centre is the scene's, and a block placed before
+    the first shifts the first's indices; blocks on different lattices are refused."""
+    from warpmpm.scenes import block_model, merge_models
+
+    a = block_model((4, 3, 3), (2.0, 2.0, 2.0), "pancreas")
+    b = block_model((3, 3, 3), (2.0, 2.0, 2.0), "duodenum", origin_mm=(8.0, 0.0, 0.0))
+    for m in (merge_models(a, b), merge_models(b, a)):
+        g = m.geometry
+        assert g.size == (7, 3, 3)
+        np.testing.assert_allclose(g.index_to_world(m.voxel_ijk), m.positions_mm, atol=1e-9)  # every index is where it lies
+        np.testing.assert_allclose(g.center_mm(), [6.0, 2.0, 2.0])  # the box of both, not the first block's
+        on = m.slice_mask("sagittal", 5)
+        assert on.sum() == 9 and np.all(np.asarray(m.organs)[m.organ_index[on]] == "duodenum")
+        assert m.slice_mask("sagittal", 1).sum() == 9 and np.all(np.asarray(m.organs)[m.organ_index[m.slice_mask("sagittal", 1)]] == "pancreas")
+    before = block_model((2, 3, 3), (2.0, 2.0, 2.0), "stomach", origin_mm=(-4.0, 0.0, 0.0))
+    m = merge_models(a, before)
+    assert m.geometry.size == (6, 3, 3) and m.geometry.origin_mm == (-4.0, 0.0, 0.0)
+    np.testing.assert_allclose(m.geometry.index_to_world(m.voxel_ijk), m.positions_mm, atol=1e-9)
+    with pytest.raises(InputError, match="one voxel lattice"):
+        merge_models(a, block_model((3, 3, 3), (2.0, 2.0, 2.0), "duodenum", origin_mm=(9.0, 0.0, 0.0)))
+    with pytest.raises(InputError, match="one voxel lattice"):
+        merge_models(a, block_model((3, 3, 3), (2.5, 2.0, 2.0), "duodenum", origin_mm=(10.0, 0.0, 0.0)))

@@ -34,14 +34,33 @@ def block_model(
 
 
 def merge_models(a: ParticleModel, b: ParticleModel) -> ParticleModel:
-    """Two models with different organs in one scene (test scenes of touching bodies)."""
+    """Two models with different organs in one scene (test scenes of touching bodies), on one grid that covers both.
+
+    The two must lie on one voxel lattice (the same spacing, directions and sampling step, their origins a whole number
+    of voxels apart, no isotropic lattice); the merged grid is the box of both grids and every particle's voxel index is
+    its index in it, so a slice index names the same plane for the particles of both and the grid's centre is the
+    scene's."""
     organs = tuple(o for o in ORGANS if o in a.organs or o in b.organs)
     if set(a.organs) & set(b.organs):
         raise InputError("merge_models needs models of different organs")
+    if a.lattice is not None or b.lattice is not None:
+        raise InputError("merge_models takes models on their voxel grids, not on an isotropic lattice")
+    ga, gb = a.geometry, b.geometry
+    offset = ga.world_to_index(np.asarray(gb.origin_mm, dtype=np.float64)[None, :])[0]
+    if (not np.allclose(ga.spacing_mm, gb.spacing_mm, rtol=1e-6) or not np.allclose(ga.direction, gb.direction, atol=1e-9)
+            or not np.allclose(offset, np.rint(offset), atol=1e-3) or a.sampling_step != b.sampling_step):
+        raise InputError("merge_models needs models on one voxel lattice: the same spacing, directions and sampling step, "
+                         f"origins a whole number of voxels apart (spacing {ga.spacing_mm} and {gb.spacing_mm} mm, the second "
+                         f"origin at voxel {np.round(offset, 3).tolist()} of the first grid)")
+    offset = np.rint(offset).astype(np.int64)
+    lo = np.minimum(0, offset)
+    hi = np.maximum(np.asarray(ga.size), offset + np.asarray(gb.size))
+    geometry = ga.crop(tuple(int(v) for v in lo), tuple(int(v) for v in hi))
     idx = np.concatenate([[organs.index(a.organs[i]) for i in a.organ_index], [organs.index(b.organs[i]) for i in b.organ_index]]).astype(np.int32)
+    ijk = np.vstack([a.voxel_ijk - lo, b.voxel_ijk + offset - lo]).astype(np.int32)
     mats = {**a.materials, **b.materials}
-    return ParticleModel(np.vstack([a.positions_mm, b.positions_mm]), idx, organs, np.vstack([a.voxel_ijk, b.voxel_ijk]),
-                         np.concatenate([a.volume_mm3, b.volume_mm3]), {o: mats[o] for o in organs}, a.geometry)
+    return ParticleModel(np.vstack([a.positions_mm, b.positions_mm]), idx, organs, ijk,
+                         np.concatenate([a.volume_mm3, b.volume_mm3]), {o: mats[o] for o in organs}, geometry, a.sampling_step)
 
 
 def inclusion_model(
