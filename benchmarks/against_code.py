@@ -89,7 +89,7 @@ def main(argv=None):
     p.add_argument("--steps", default="2,1", help="particle steps of the frames, comma-separated (empty: none)")
     p.add_argument("--pairs", type=int, default=4)
     p.add_argument("--stream", type=int, default=0, help="frames of the streaming comparison (0: none)")
-    p.add_argument("--raw", default="against_code", help="name of the raw-numbers file in benchmarks/results/ (without .json)")
+    p.add_argument("--raw", type=raw.check_name, default="against_code", help="name of the raw-numbers file in benchmarks/results/ (without .json)")
     a = p.parse_args(argv)
     try:
         steps = [int(s) for s in a.steps.split(",") if s.strip()]

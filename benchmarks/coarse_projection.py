@@ -68,7 +68,7 @@ def stiffness_operator(est, x0_m: np.ndarray, nodes: np.ndarray):
     pen_k = np.zeros(mp.n, np.float32)
     proj = np.zeros((mp.n, 3, 3), np.float32)
     pen_k[est.driven] = est.gains.kp_per_s2 * mass[est.driven]
-    proj[est.driven] = est._axes.numpy()
+    proj[est.driven] = est.driven_axes()
     xw = wp.array(x0_m.astype(np.float32), dtype=wp.vec3, device=d)
     pk, pw = wp.array(pen_k, dtype=float, device=d), wp.array(proj, dtype=wp.mat33, device=d)
     vin, out = wp.zeros(nn, dtype=wp.vec3, device=d), wp.zeros(nn, dtype=wp.vec3, device=d)
@@ -112,7 +112,7 @@ def main(argv=None):
         if s == a.step and est.accelerator is not None and est.accelerator.built:
             # the coarse level as a build at this state makes it (a second accelerator: the running one is left alone)
             acc = RigidModeAccelerator(est.mpm, aggregate_mm=est.mpm.config.rigid_mode_aggregate_mm, modes=est.mpm.config.rigid_mode_basis)
-            acc.build(est.state, est.driven, est._axes.numpy(), est.gains.kp_per_s2)
+            acc.build(est.state, est.driven, est.driven_axes(), est.gains.kp_per_s2)
             keep.update(x0=est.state.x.numpy().astype(np.float64), damping_per_s=est.solver.damping_per_s, acc=acc)
         if s == a.step + a.window and "x0" in keep:
             keep["x1"] = est.state.x.numpy().astype(np.float64)

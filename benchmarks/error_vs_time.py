@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 import time
 import numpy as np
@@ -180,7 +181,7 @@ def main(argv=None):
         print(f"| {r['step']} | {r['ppc']:g} | {r['th_d']} | {solver} | {r['n']} | {r['error']:.2f} | {r['wall']:.2f} | {r['steps']:.0f} | "
               f"{'yes' if r in front else ''} |")
     print(f"| initial (no estimation) | | | | | {np.mean([r['initial'] for r in rows]):.2f} | | | |")
-    raw.save("error_vs_time" if a.labels is None else "error_vs_time_" + os.path.basename(os.path.dirname(os.path.abspath(a.labels))),
+    raw.save("error_vs_time" if a.labels is None else "error_vs_time_" + re.sub(r"[^A-Za-z0-9_.-]", "_", os.path.basename(os.path.dirname(os.path.abspath(a.labels)))),
              [dict(r, pareto=r in front) for r in rows])
     print("| paper, psdl best slice (AMOS, 96-core CPU) | | | | | 5.11 | 2587 | | |")
     try:

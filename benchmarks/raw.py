@@ -5,10 +5,12 @@ the machine, the date, the command line and the package versions, so a table can
 re-plotted) without re-running it. Written through a temporary file: never half a file.
 """
 
+import argparse
 import datetime
 import json
 import os
 import platform
+import re
 import sys
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
@@ -33,8 +35,22 @@ def machine() -> dict:
     return info
 
 
+class RawNameError(ValueError, argparse.ArgumentTypeError):
+    """A raw-numbers name that cannot name a file of ``benchmarks/results/`` (argparse prints its message)."""
+
+
+def check_name(name: str) -> str:
+    """``name`` when it can name a file of ``benchmarks/results/`` (letters, digits, ``_``, ``-``, ``.``; no folder, no
+    ``.json``), else :class:`RawNameError` (a ValueError) saying so (an ``argparse`` type for ``--raw`` options)."""
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_.-]+", name) or name.startswith(".") or name.endswith(".json"):
+        raise RawNameError(f"raw-numbers name {name!r}: use letters, digits, '_', '-' and '.', without a folder or '.json' "
+                         f"(it becomes benchmarks/results/<name>.json)")
+    return name
+
+
 def save(name: str, data) -> str:
     """Write ``data`` (JSON-able; numpy values are converted) with the run's context; returns the path."""
+    check_name(name)
     os.makedirs(RESULTS, exist_ok=True)
     path = os.path.join(RESULTS, f"{name}.json")
     doc = {"benchmark": name, "date": datetime.datetime.now().isoformat(timespec="seconds"), "argv": sys.argv,

@@ -82,7 +82,7 @@ def main(argv=None):
     p.add_argument("--scenes", default="res3,default", help=f"comma-separated of {sorted(SCENES)}")
     p.add_argument("--max-steps", type=int, default=8000)
     p.add_argument("--variants", default=f"off,organs,40,{RIGID_MODE_AGGREGATE_MM:g},affine")
-    p.add_argument("--raw", default="settling", help="name of the raw-numbers file in benchmarks/results/ (without .json)")
+    p.add_argument("--raw", type=raw.check_name, default="settling", help="name of the raw-numbers file in benchmarks/results/ (without .json)")
     a = p.parse_args(argv)
     scenes = a.scenes.split(",")
     bad = [s for s in scenes if s not in SCENES]

@@ -111,7 +111,7 @@ def main(argv=None):
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--registration", default="itk", help="slice registration backends for the registration* kinds: itk, gauss-newton or both")
     p.add_argument("--passes", default="1", help="registration passes for the registration* kinds on several planes, e.g. 1,3")
-    p.add_argument("--name", default=None, help="raw results file name (default slice_motion_<protocol>)")
+    p.add_argument("--name", type=raw.check_name, default=None, help="raw results file name (default slice_motion_<protocol>)")
     a = p.parse_args(argv)
     cases = [c for c in a.cases.split(",") if os.path.exists(os.path.join(DATA, c, "labels.nii.gz"))]
     for c in set(a.cases.split(",")) - set(cases):

@@ -490,3 +490,17 @@ def test_make_cine_refuses_bad_parameters_before_writing_anything(tmp_path, args
     out = tmp_path / "series"
     assert main(["make-cine", "--out", str(out), *args]) == 2
     assert not out.exists()  # not even the phantom's planning files
+
+
+def test_a_raw_numbers_name_that_leaves_the_results_folder_is_refused(tmp_path, monkeypatch):
+    """Benchmarks write benchmarks/results/<--raw>.json: a name with a folder in it is refused before the run (the
+    option's type) and at the write, and nothing is written."""
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks"))
+    import raw
+
+    monkeypatch.setattr(raw, "RESULTS", str(tmp_path / "results"))
+    for bad in ("../elsewhere", "a/b", "x.json", "", ".hidden"):
+        with pytest.raises(ValueError, match="raw-numbers name"):
+            raw.save(bad, {"n": 1})
+    assert not (tmp_path / "results").exists() and not (tmp_path / "elsewhere.json").exists()
+    assert os.path.basename(raw.save("fine_name-2.x", {"n": 1})) == "fine_name-2.x.json"

@@ -412,6 +412,11 @@ class SliceDrivenEstimator:
     def positions_mm(self) -> np.ndarray:
         return self.state.positions_mm()
 
+    def driven_axes(self) -> np.ndarray:
+        """(n_driven, 3, 3) the projector of each driven particle's drive (the identity: pinned; the plane's in-plane
+        projector: in-plane driving), as the last :meth:`estimate` set it (a copy)."""
+        return self._axes.numpy().copy()
+
     def _inside_grid(self, points_mm: np.ndarray) -> bool:
         """Whether every point lies where a particle's stencil stays clear of the grid's wall layer."""
         lo = self.mpm.origin_mm + (self.mpm.config.wall_cells + 1) * self.mpm.dx_mm
