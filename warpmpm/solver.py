@@ -539,9 +539,13 @@ class MPMSolver:
         self._node_ranges = parallel.split(shape[0], self.threads)
         #: the grid update visits only the blocks of nodes that hold mass (:func:`warpmpm.kernels.grid_update_blocks`;
         #: sticky contact on the CPU): P2G stamps the blocks of ``kernels.BLOCK``^3 nodes it scatters into with the
-        #: step's number. On CUDA every node has a thread of its own and the dense update is kept.
+        #: step's number. On CUDA every node has a thread of its own and the dense update is kept. By default only on one
+        #: thread: split over two, the threads' stamps share cache lines in P2G and the block update gains nothing, and
+        #: the dense update was the faster step (measured, same process: default phantom 11.05 against 11.49 ms,
+        #: 97k-particle cube 29.5 against 32.3 ms; on one thread the sparse one on the phantom, 18.6 against 19.8 ms, and
+        #: about the same on the cube, 51.7 against 50.5)
         self._sparse_capable = not self.fields and not str(d).startswith("cuda")
-        self._sparse_update = self._sparse_capable
+        self._sparse_update = self._sparse_capable and self.threads == 1
         blocks = tuple(-(-n // kernels.BLOCK) for n in shape) if self._sparse_capable else (1, 1, 1)
         self._stamps = wp.zeros(blocks, dtype=int, device=d)
         self._updated = wp.zeros(blocks, dtype=int, device=d)
@@ -589,9 +593,9 @@ class MPMSolver:
     @property
     def sparse_update(self) -> bool:
         """Whether the grid update visits only the node blocks that hold mass (:func:`warpmpm.kernels.grid_update_blocks`):
-        True on the CPU with sticky contact, where the solver keeps the blocks' stamps. It may be set to False (every
-        node, the dense update: the same grid to the bit) and back; True is refused where there are no stamps (CUDA,
-        sliding contact)."""
+        by default on a one-thread CPU step with sticky contact (the solver keeps the blocks' stamps whenever it runs on
+        the CPU with sticky contact). It may be set to False (every node, the dense update: the same grid to the bit)
+        and back; True is refused where there are no stamps (CUDA, sliding contact)."""
         return self._sparse_update
 
     @sparse_update.setter
