@@ -158,40 +158,57 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=0, help="timed steps (default: enough for ~3 s, at least 5)")
     p.add_argument("--no-taichi", action="store_true")
     p.add_argument("--threads", type=int, default=2, help="threads of warpmpm's split CPU step (timed beside one thread)")
+    p.add_argument("--runs", type=int, default=1, help="repeat the whole measurement this many times (the issue's figure: the "
+                   "median of five runs' ratios)")
+    p.add_argument("--raw", type=raw.check_name, default="solver_step", help="name of the raw-numbers file in benchmarks/results/")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines
     wp.init()
     device = a.device or ("cuda" if wp.is_cuda_available() else "cpu")
     name = wp.get_device(device).name
     print(f"device: {device} ({name}), warp {wp.__version__}, cores {os.cpu_count()}")
-    rows = []
-    for n in [int(s) for s in a.sizes.split(",")]:
-        pm = scene(n)
-        steps = a.steps or (200 if device.startswith("cuda") else max(5, int(3e6 / pm.n)))
-        t_1 = float("nan")
-        if not device.startswith("cuda"):
-            t_1, *_ = time_warp(pm, device, steps, 1)
-        t_w, m, bpp, grid = time_warp(pm, device, steps, a.threads)
-        t_t = float("nan")
-        if not a.no_taichi:
-            try:
-                t_t = time_taichi(pm, m, steps, device)
-            except Exception as exc:  # benchmark-only dependency
-                print(f"taichi unavailable: {exc}")
-                a.no_taichi = True
-        rows.append((pm.n, m.grid_shape, t_1, t_w, t_t, bpp, grid))
-        print(f"  {pm.n} particles: warpmpm {t_1 * 1e3:.3f} ms/step on one thread, {t_w * 1e3:.3f} split over {a.threads}, "
-              f"taichi {t_t * 1e3:.3f} ms/step", flush=True)
-    print()
-    print(f"| particles | grid | warpmpm 1 thread ms/step | warpmpm {a.threads} threads ms/step | {a.threads} threads / 1 (speed) | "
-          "M particle-steps/s | taichi ms/step | taichi / warpmpm | bytes/particle | grid MB |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for n, g, t1, tw, tt, bpp, grid in rows:
-        print(f"| {n} | {g[0]}x{g[1]}x{g[2]} | {t1 * 1e3:.3f} | {tw * 1e3:.3f} | {t1 / tw:.2f} | {n / tw / 1e6:.2f} | {tt * 1e3:.3f} | "
-              f"{tt / tw:.2f} | {bpp:.0f} | {grid / 1e6:.1f} |")
-    raw.save("solver_step", [{"particles": n, "grid": list(g), "threads": a.threads, "warpmpm_1_thread_s_per_step": t1,
-                              "warpmpm_s_per_step": tw, "taichi_s_per_step": tt, "bytes_per_particle": bpp, "grid_bytes": grid}
-                             for n, g, t1, tw, tt, bpp, grid in rows])
+    runs = []
+    for run in range(max(1, a.runs)):
+        rows = []
+        for n in [int(s) for s in a.sizes.split(",")]:
+            pm = scene(n)
+            steps = a.steps or (200 if device.startswith("cuda") else max(5, int(3e6 / pm.n)))
+            t_1 = float("nan")
+            if not device.startswith("cuda"):
+                t_1, *_ = time_warp(pm, device, steps, 1)
+            t_w, m, bpp, grid = time_warp(pm, device, steps, a.threads)
+            t_t = float("nan")
+            if not a.no_taichi:
+                try:
+                    t_t = time_taichi(pm, m, steps, device)
+                except Exception as exc:  # benchmark-only dependency
+                    print(f"taichi unavailable: {exc}")
+                    a.no_taichi = True
+            rows.append((pm.n, m.grid_shape, t_1, t_w, t_t, bpp, grid))
+            print(f"  run {run + 1}, {pm.n} particles: warpmpm {t_1 * 1e3:.3f} ms/step on one thread, {t_w * 1e3:.3f} split over "
+                  f"{a.threads}, taichi {t_t * 1e3:.3f} ms/step", flush=True)
+        print()
+        print(f"| particles | grid | warpmpm 1 thread ms/step | warpmpm {a.threads} threads ms/step | {a.threads} threads / 1 (speed) | "
+              "M particle-steps/s | taichi ms/step | taichi / warpmpm | bytes/particle | grid MB |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
+        for n, g, t1, tw, tt, bpp, grid in rows:
+            print(f"| {n} | {g[0]}x{g[1]}x{g[2]} | {t1 * 1e3:.3f} | {tw * 1e3:.3f} | {t1 / tw:.2f} | {n / tw / 1e6:.2f} | {tt * 1e3:.3f} | "
+                  f"{tt / tw:.2f} | {bpp:.0f} | {grid / 1e6:.1f} |")
+        runs.append([{"particles": n, "grid": list(g), "threads": a.threads, "warpmpm_1_thread_s_per_step": t1,
+                      "warpmpm_s_per_step": tw, "taichi_s_per_step": tt, "bytes_per_particle": bpp, "grid_bytes": grid}
+                     for n, g, t1, tw, tt, bpp, grid in rows])
+    if len(runs) > 1:
+        print()
+        print(f"| particles | taichi / warpmpm ({a.threads} threads), {len(runs)} runs | median | taichi / warpmpm (1 thread), median | "
+              f"{a.threads} threads / 1, median |")
+        print("|---|---|---|---|---|")
+        for i, r in enumerate(runs[0]):
+            ratios = [run[i]["taichi_s_per_step"] / run[i]["warpmpm_s_per_step"] for run in runs]
+            one = [run[i]["taichi_s_per_step"] / run[i]["warpmpm_1_thread_s_per_step"] for run in runs]
+            gain = [run[i]["warpmpm_1_thread_s_per_step"] / run[i]["warpmpm_s_per_step"] for run in runs]
+            print(f"| {r['particles']} | {', '.join(f'{x:.2f}' for x in ratios)} | **{np.median(ratios):.2f}** | {np.median(one):.2f} | "
+                  f"{np.median(gain):.2f} |")
+    raw.save(a.raw, runs[0] if len(runs) == 1 else runs)
 
 
 if __name__ == "__main__":
