@@ -141,6 +141,8 @@ def test_a_slab_field_sees_the_particles_beyond_the_slab():
     assert np.abs(own - whole[:, :, lo[0]:hi[0]]).max(axis=-1)[far].max() > 0.2
     with pytest.raises(InputError, match="crop"):
         backward_displacement(g.crop(lo, hi), planning, moved, far_geometry=dataclasses.replace(g, spacing_mm=(1.3, 1.25, 2.5)))
+    with pytest.raises(InputError, match="crop"):  # a far grid that does not hold the slab
+        backward_displacement(g.crop(lo, hi), planning, moved, far_geometry=g.crop((36, 0, 0), g.size))
 
 
 def test_a_field_returned_on_a_thin_crop_is_the_crop_of_the_whole_field():

@@ -49,7 +49,8 @@ def backward_displacement(geometry: Geometry, planning_mm: np.ndarray, positions
     The far fill is smoothed on cells of about ``far_sigma_mm`` / :data:`FAR_CELLS_PER_SIGMA` (blocks of whole voxels:
     4 x 4 x 2 of the phantom's 1.33 x 1.33 x 3 mm voxels at the default 25 mm; the particles scattered onto the blocks
     directly, which is the blocks' sum of the fine scatter) and interpolated linearly onto ``geometry``.
-    ``far_geometry``: the grid the far fill is computed on, one of which ``geometry`` is a crop (:meth:`Geometry.crop`);
+    ``far_geometry``: the grid the far fill is computed on, one of which ``geometry`` is a crop (:meth:`Geometry.crop`;
+    a grid that is not, or does not hold it, is refused);
     :func:`render_plane` passes the whole planning grid, so the far fill of a frame's slab sees the particles beyond
     the slab, as the whole-volume warp's does. Default: ``geometry``. Measured on the default phantom under a smooth
     non-rigid motion (``benchmarks/rendering_speed.py``): within 8 mm of the particles, where the near fill weighs,
@@ -68,12 +69,14 @@ def backward_displacement(geometry: Geometry, planning_mm: np.ndarray, positions
     out_g = geometry if out_geometry is None else out_geometry
     cut = _crop_offset(geometry, out_g)
     fg = geometry if far_geometry is None else far_geometry
-    offset = _crop_offset(fg, out_g)
-    near_acc, mean_near = _scatter(geometry, positions_mm, u, (1, 1, 1))
+    inner = np.asarray(_crop_offset(fg, geometry))
+    offset = tuple(int(v) for v in inner + cut)  # out_g's first voxel in fg
+    ijk = np.rint(geometry.world_to_index(positions_mm)).astype(np.int64)  # each particle's nearest voxel, once
+    near_acc, mean_near = _scatter(ijk, geometry.size, u, (1, 1, 1))
     near, den_near, peak = _fill_near(geometry, near_acc, sigma_mm, mean_near, cut, out_g.size)
     # whole voxels a coarse cell, leaving the 4 cells a side the recursive filter needs
     factors = tuple(max(1, min(int(far_sigma_mm / FAR_CELLS_PER_SIGMA / s), n // 4)) for s, n in zip(fg.spacing_mm, fg.size))
-    far_acc, mean_far = _scatter(fg, positions_mm, u, factors)
+    far_acc, mean_far = _scatter(ijk + inner, fg.size, u, factors)
     far_coarse, _ = _fill(_coarse_geometry(fg, factors), far_acc, far_sigma_mm, mean_far)
     far = _upsample(far_coarse, factors, offset, near.shape[:3])
     weight = np.clip(den_near * (4.0 / max(peak, 1e-12)), 0.0, 1.0)[..., None]
@@ -115,24 +118,26 @@ FAR_CELLS_PER_SIGMA = 4.0
 
 
 def _crop_offset(outer: Geometry, inner: Geometry) -> tuple[int, int, int]:
-    """The voxel index (x, y, z) of ``inner``'s first voxel in ``outer``, of which it must be a crop."""
+    """The voxel index (x, y, z) of ``inner``'s first voxel in ``outer``, of which it must be a crop (InputError
+    otherwise)."""
     off = outer.world_to_index(np.asarray(inner.origin_mm, dtype=np.float64)[None, :])[0]
     same = (np.allclose(outer.spacing_mm, inner.spacing_mm, rtol=1e-6) and np.allclose(outer.direction, inner.direction, atol=1e-9)
             and np.allclose(off, np.rint(off), atol=1e-3))
-    if not same:
-        raise InputError("rendering: the far fill's grid must be one the field's grid is a crop of (same spacing and "
-                         "directions, origin on one of its voxels)")
-    return tuple(int(v) for v in np.rint(off))
+    off = np.rint(off).astype(np.int64)
+    if not same or np.any(off < 0) or np.any(off + np.asarray(inner.size) > np.asarray(outer.size)):
+        raise InputError("rendering: a field's grid must be a crop of the grid it is computed from (same spacing and "
+                         f"directions, inside it, origin on one of its voxels): {inner.size} voxels from voxel "
+                         f"{off.tolist()} of a {outer.size} grid")
+    return tuple(int(v) for v in off)
 
 
-def _scatter(geometry: Geometry, positions_mm: np.ndarray, u: np.ndarray, factors) -> tuple[np.ndarray, np.ndarray]:
-    """Each particle's count and backward displacement ``-u`` added at its nearest voxel of ``geometry`` (z, y, x, 4:
-    count, then the three components' sums), summed over blocks of ``factors`` (x, y, z) voxels; and the mean
-    backward displacement of the particles inside the grid."""
-    ijk = np.rint(geometry.world_to_index(positions_mm)).astype(np.int64)
-    inside = np.all((ijk >= 0) & (ijk < np.asarray(geometry.size)), axis=1)
+def _scatter(ijk: np.ndarray, size, u: np.ndarray, factors) -> tuple[np.ndarray, np.ndarray]:
+    """Each particle's count and backward displacement ``-u`` added at its nearest voxel ``ijk`` (N, 3: x, y, z) of a
+    grid of ``size`` voxels (z, y, x, 4: count, then the three components' sums; particles outside left out), summed
+    over blocks of ``factors`` (x, y, z) voxels; and the mean backward displacement of the particles inside the grid."""
+    inside = np.all((ijk >= 0) & (ijk < np.asarray(size)), axis=1)
     ijk, u = ijk[inside] // np.asarray(factors), u[inside]
-    shape = tuple(-(-n // f) for n, f in zip(geometry.size, factors))[::-1]
+    shape = tuple(-(-n // f) for n, f in zip(size, factors))[::-1]
     flat = np.ravel_multi_index((ijk[:, 2], ijk[:, 1], ijk[:, 0]), shape)
     n = int(np.prod(shape))
     acc = np.empty(shape + (4,), dtype=np.float32)
