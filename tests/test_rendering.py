@@ -160,3 +160,41 @@ def test_a_field_returned_on_a_thin_crop_is_the_crop_of_the_whole_field():
         want = whole[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
         assert part.shape == want.shape and np.abs(want).max() > 2.0
         np.testing.assert_allclose(part, want, rtol=0, atol=1e-5)
+
+
+def test_far_from_the_organs_the_field_is_continuous_and_within_the_particles_motion():
+    """The default phantom under a smooth non-rigid motion (breathing growing to 10 mm along the body, 3 degrees about
+    z): every voxel's backward displacement lies within the particles' range (a weighted mean of their displacements),
+    and 40 mm and more from every particle the field changes between neighbouring voxels at most 1.5x as fast as it
+    does within 8 mm of the organs (measured: 0.26 against 0.30 mm/mm; before, the fill switched to the particles' mean
+    where its weights fell below 1e-3 of their peak: 1.43 mm/mm, a jump of 3.8 mm between two voxels 3 mm apart, and
+    values up to 2.2 mm outside the particles' range)."""
+    from warpmpm.model import build_model
+    from warpmpm.phantom import make_phantom
+    from warpmpm.rendering import backward_displacement
+
+    case = make_phantom(seed=0)
+    m = build_model(case, "psdl", sampling_step=2)
+    g = case.geometry
+    p = m.positions_mm
+    c = p.mean(axis=0)
+    a = np.radians(3.0)
+    rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    moved = (p - c) @ rot.T + c
+    moved[:, 2] += 10.0 * (p[:, 2] - p[:, 2].min()) / np.ptp(p[:, 2])
+    f = sitk.GetArrayFromImage(backward_displacement(g, p, moved)).astype(np.float64)
+    back = p - moved
+    assert np.all(f >= back.min(axis=0) - 1e-4) and np.all(f <= back.max(axis=0) + 1e-4)
+    ijk = np.rint(g.world_to_index(moved)).astype(int)
+    occupied = np.zeros(g.size[::-1], dtype=np.uint8)
+    occupied[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = 1
+    dist = sitk.GetArrayFromImage(sitk.SignedMaurerDistanceMap(g.apply_to(sitk.GetImageFromArray(occupied)), insideIsPositive=False,
+                                                              squaredDistance=False, useImageSpacing=True))
+    near, far = [], []
+    for axis, spacing in enumerate(g.spacing_mm[::-1]):  # z, y, x
+        rate = np.abs(np.diff(f, axis=axis)).max(axis=-1) / spacing
+        d = np.minimum(np.delete(dist, -1, axis=axis), np.delete(dist, 0, axis=axis))  # the nearer voxel of each pair
+        near.append(rate[d < 8.0].max())
+        far.append(rate[d >= 40.0].max())
+    assert np.abs(f).max() > 9.0 and (dist >= 40.0).mean() > 0.05
+    assert max(far) < 1.5 * max(near)

@@ -6,7 +6,7 @@ the particles at their current positions and filled by normalised Gaussian smoot
 ``sigma_mm`` near the organs, blended into a ``far_sigma_mm`` extrapolation elsewhere, so the tissue around
 the organs moves with them instead of tearing at their boundaries (the paper deforms whole slices); beyond the
 extrapolation's reach (where its weights are lost in the filter's error) the tissue takes the particles' mean
-displacement.
+displacement, blended in smoothly (:func:`_normalise`).
 
 The far fill is smoothed on cells of a quarter of its width, not on every voxel (:func:`backward_displacement`).
 :func:`warp_volume` warps the whole volume (the ground truths' captured images). :func:`render_plane` renders
@@ -56,7 +56,8 @@ def backward_displacement(geometry: Geometry, planning_mm: np.ndarray, positions
     non-rigid motion (``benchmarks/rendering_speed.py``): within 8 mm of the particles, where the near fill weighs,
     the whole-volume field is within 0.016 mm of the fill on every voxel (0.09 mm within 40 mm; several mm only
     60 mm and more from every particle, where both fall back to the particles' mean displacement at slightly
-    different places); :func:`warp_volume` takes 0.56-0.64x the time.
+    different places; fourteenth session, before the blend of :func:`_normalise`); :func:`warp_volume` takes
+    0.56-0.64x the time.
 
     ``out_geometry``: the grid the field is returned on, a crop of ``geometry`` (default: ``geometry`` itself); the
     near fill is still that of all of ``geometry`` (its weights' peak too). When the crop cuts one axis only (a frame's
@@ -72,12 +73,12 @@ def backward_displacement(geometry: Geometry, planning_mm: np.ndarray, positions
     inner = np.asarray(_crop_offset(fg, geometry))
     offset = tuple(int(v) for v in inner + cut)  # out_g's first voxel in fg
     ijk = np.rint(geometry.world_to_index(positions_mm)).astype(np.int64)  # each particle's nearest voxel, once
-    near_acc, mean_near = _scatter(ijk, geometry.size, u, (1, 1, 1))
-    near, den_near, peak = _fill_near(geometry, near_acc, sigma_mm, mean_near, cut, out_g.size)
+    near_acc, near_range = _scatter(ijk, geometry.size, u, (1, 1, 1))
+    near, den_near, peak = _fill_near(geometry, near_acc, sigma_mm, near_range, cut, out_g.size)
     # whole voxels a coarse cell, leaving the 4 cells a side the recursive filter needs
     factors = tuple(max(1, min(int(far_sigma_mm / FAR_CELLS_PER_SIGMA / s), n // 4)) for s, n in zip(fg.spacing_mm, fg.size))
-    far_acc, mean_far = _scatter(ijk + inner, fg.size, u, factors)
-    far_coarse, _ = _fill(_coarse_geometry(fg, factors), far_acc, far_sigma_mm, mean_far)
+    far_acc, far_range = _scatter(ijk + inner, fg.size, u, factors)
+    far_coarse, _ = _fill(_coarse_geometry(fg, factors), far_acc, far_sigma_mm, far_range, blend=True)
     far = _upsample(far_coarse, factors, offset, near.shape[:3])
     weight = np.clip(den_near * (4.0 / max(peak, 1e-12)), 0.0, 1.0)[..., None]
     near -= far  # near's weight times near, the rest far: far + weight (near - far), in place
@@ -87,13 +88,13 @@ def backward_displacement(geometry: Geometry, planning_mm: np.ndarray, positions
     return out_g.apply_to(disp)
 
 
-def _fill_near(geometry: Geometry, acc: np.ndarray, sigma: float, mean_u: np.ndarray, cut, size):
+def _fill_near(geometry: Geometry, acc: np.ndarray, sigma: float, u_range: np.ndarray, cut, size):
     """:func:`_fill` of ``acc`` on ``geometry`` returned on its crop of ``size`` voxels from voxel ``cut`` (x, y, z),
     and the smoothed count's peak over all of ``geometry``. A crop along one axis only is smoothed along that axis
     first, over everything, and along the other two over the crop (the count alone over everything, for its peak)."""
     cut_axes = [a for a in range(3) if size[a] != geometry.size[a]]
     if len(cut_axes) != 1:  # nothing cut, or several axes: smooth everything, then cut
-        out, count = _fill(geometry, acc, sigma, mean_u)
+        out, count = _fill(geometry, acc, sigma, u_range)
         z, y, x = (slice(c, c + n) for c, n in zip(cut[::-1], size[::-1]))
         return out[z, y, x], count[z, y, x], float(count.max())
     a = cut_axes[0]
@@ -108,7 +109,7 @@ def _fill_near(geometry: Geometry, acc: np.ndarray, sigma: float, mean_u: np.nda
             count = sitk.RecursiveGaussian(count, sigma, False, zero, b)
             part = sitk.RecursiveGaussian(part, sigma, False, zero, b)
     peak = float(sitk.GetArrayViewFromImage(count).max())
-    out, den = _normalise(sitk.GetArrayFromImage(part), peak, mean_u)
+    out, den = _normalise(sitk.GetArrayFromImage(part), peak, u_range)
     return out, den, peak
 
 
@@ -134,7 +135,8 @@ def _crop_offset(outer: Geometry, inner: Geometry) -> tuple[int, int, int]:
 def _scatter(ijk: np.ndarray, size, u: np.ndarray, factors) -> tuple[np.ndarray, np.ndarray]:
     """Each particle's count and backward displacement ``-u`` added at its nearest voxel ``ijk`` (N, 3: x, y, z) of a
     grid of ``size`` voxels (z, y, x, 4: count, then the three components' sums; particles outside left out), summed
-    over blocks of ``factors`` (x, y, z) voxels; and the mean backward displacement of the particles inside the grid."""
+    over blocks of ``factors`` (x, y, z) voxels; and the mean, least and largest backward displacement of the particles
+    inside the grid (3 x 3: rows mean, least, largest; :func:`_normalise`)."""
     inside = np.all((ijk >= 0) & (ijk < np.asarray(size)), axis=1)
     ijk, u = ijk[inside] // np.asarray(factors), u[inside]
     shape = tuple(-(-n // f) for n, f in zip(size, factors))[::-1]
@@ -144,7 +146,9 @@ def _scatter(ijk: np.ndarray, size, u: np.ndarray, factors) -> tuple[np.ndarray,
     acc[..., 0] = np.bincount(flat, minlength=n).reshape(shape)
     for c in range(3):
         acc[..., c + 1] = np.bincount(flat, weights=-u[:, c], minlength=n).reshape(shape)
-    return acc, (-u.sum(axis=0) / max(len(u), 1)).astype(np.float32)
+    if len(u) == 0:
+        return acc, np.zeros((3, 3), dtype=np.float32)
+    return acc, np.stack([-u.mean(axis=0), (-u).min(axis=0), (-u).max(axis=0)]).astype(np.float32)
 
 
 def _coarse_geometry(geometry: Geometry, factors) -> Geometry:
@@ -156,25 +160,44 @@ def _coarse_geometry(geometry: Geometry, factors) -> Geometry:
                     geometry.direction)
 
 
-def _fill(geometry: Geometry, acc: np.ndarray, sigma: float, mean_u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _fill(geometry: Geometry, acc: np.ndarray, sigma: float, u_range: np.ndarray, blend: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The normalised fill at ``sigma`` of the scattered count and sums ``acc`` (z, y, x, 4) on ``geometry``, and the
-    smoothed count (one smoothing of all four components). Where the smoothed count is below 1e-3 of its peak (some
-    3.7 sigma from every particle) the recursive filter's error is of the order of the count itself and the ratio is
-    noise (measured: up to 1e6 mm on 5 % of the phantom's voxels and 27 % of the MR sample's for a uniform
-    translation, where the answer is the translation everywhere): the fill there is the particles' mean displacement
-    ``mean_u`` instead."""
+    smoothed count (one smoothing of all four components), made safe where the count is small (:func:`_normalise`)."""
     stacked = geometry.apply_to(sitk.GetImageFromArray(acc, isVector=True))
     sm = sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(stacked, sigma))
-    return _normalise(sm, float(sm[..., 0].max()), mean_u)
+    return _normalise(sm, float(sm[..., 0].max()), u_range, blend)
 
 
-def _normalise(sm: np.ndarray, peak: float, mean_u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The smoothed sums over the smoothed count where the count is above 1e-3 of ``peak``, ``mean_u`` elsewhere
-    (:func:`_fill`); and the count."""
+#: smoothed count, as a fraction of its peak, below which a fill is the particles' mean displacement; with ``blend``
+#: (the far fill) it is the normalised fill above ``FILL_TRUST`` and the two are blended between (:func:`_normalise`)
+FILL_FLOOR, FILL_TRUST = 1e-3, 3e-2
+
+
+def _normalise(sm: np.ndarray, peak: float, u_range: np.ndarray, blend: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The smoothed sums over the smoothed count, and the count.
+
+    A normalised Gaussian fill is a weighted mean of the particles' displacements, but the recursive filter's tails
+    are not Gaussian (they go negative), so far from every particle the ratio is noise: measured on the default
+    phantom under a smooth motion (the far fill), up to 0.3 mm outside the particles' range of displacements where
+    the count is 3e-3 to 1e-2 of its peak, 3 mm at 1e-3 to 3e-3, 40 mm to 1e5 mm below. So the ratio is clamped to the
+    particles' range (``u_range``: rows mean, least, largest, from :func:`_scatter`), which a weighted mean with
+    positive weights never leaves, and is the particles' mean displacement below :data:`FILL_FLOOR` of ``peak``.
+    ``blend`` (the far fill, whose value is the field there): between :data:`FILL_FLOOR` and :data:`FILL_TRUST` the
+    two are blended, smoothly in log count. Before (fourteenth session) the fill switched to the mean at the floor: a
+    jump of up to 3.8 mm between neighbouring voxels some 60 mm and more from every particle; now the field changes
+    there no faster than near the organs (``tests/test_rendering.py``). The near fill needs no blend: it weighs at
+    most 4x its relative count (0.004 at the floor) against the far fill."""
     count = sm[..., 0]
-    valid = count > 1e-3 * max(peak, 1e-12)
+    rel = count * (1.0 / max(peak, 1e-12))
+    valid = rel > FILL_FLOOR
     out = sm[..., 1:] / np.where(valid, count, 1.0)[..., None]
-    out[~valid] = mean_u
+    np.clip(out, u_range[1], u_range[2], out=out)
+    out[~valid] = u_range[0]
+    if blend:
+        ramp = valid & (rel < FILL_TRUST)
+        t = (np.log10(rel[ramp]) - math.log10(FILL_FLOOR)) / math.log10(FILL_TRUST / FILL_FLOOR)
+        w = (t * t * (3.0 - 2.0 * t)).astype(out.dtype)[:, None]  # smoothstep: 0 at the floor, 1 at trust
+        out[ramp] = u_range[0] + w * (out[ramp] - u_range[0])
     return out, count
 
 
