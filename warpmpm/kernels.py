@@ -24,6 +24,10 @@ The step, for particles p and grid nodes i:
 
 import warp as wp
 
+# Forward kernels only (nothing here is differentiated): no adjoint code to build, which halves the first run's
+# compile (CPU 55 -> 22 s for the package's four kernel modules; CUDA PTX 91 -> 18 s an architecture).
+wp.set_module_options({"enable_backward": False})
+
 #: flag codes written to the solver's status array
 STATUS_OK = 0
 STATUS_NONFINITE = 1

@@ -57,6 +57,9 @@ from . import kernels
 from .errors import InputError, SimulationError
 from .solver import MPMModel, QuasiStaticConfig, State
 
+# forward kernels only, no adjoints to compile (why: warpmpm.kernels)
+wp.set_module_options({"enable_backward": False})
+
 __all__ = ["QuasiStaticConfig", "QuasiStaticResult", "QuasiStaticSolver"]
 
 

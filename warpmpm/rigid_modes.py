@@ -61,6 +61,9 @@ from .errors import InputError
 from .model import ParticleModel
 from .solver import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASES, MPMModel, State, cpu_threads
 
+# forward kernels only, no adjoints to compile (why: warpmpm.kernels)
+wp.set_module_options({"enable_backward": False})
+
 __all__ = ["RigidModeAccelerator", "aggregate_groups", "TARGET_FACTOR", "AGGREGATE_MM", "MAX_BOOST"]
 
 #: the target frequency of the coarse modes, ``omega_t = TARGET_FACTOR * pi c / L`` (c: the scaled wave speed the time
