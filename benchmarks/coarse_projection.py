@@ -32,7 +32,7 @@ import warp as wp  # noqa: E402
 
 from warpmpm import InPlaneAffine, build_model, make_phantom  # noqa: E402
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
-from warpmpm.quasistatic import apply_stiffness  # noqa: E402
+from warpmpm.quasistatic import apply_stiffness, grid_view  # noqa: E402
 from warpmpm.rigid_modes import RigidModeAccelerator, _basis, _stencils  # noqa: E402
 from warpmpm.slices import DrivingSlice  # noqa: E402
 from warpmpm.solver import SolverConfig  # noqa: E402
@@ -82,7 +82,7 @@ def stiffness_operator(est, x0_m: np.ndarray, nodes: np.ndarray):
             full[nodes] = v2[:, j].reshape(na, 3)
             vin.assign(full.astype(np.float32))
             out.zero_()
-            wp.launch(apply_stiffness, mp.n, [xw, mp.vol0, mp.mu, mp.lam, pk, pw, mp.dx_mm * 1e-3, gs[1], gs[2], vin, out], device=d)
+            wp.launch(apply_stiffness, mp.n, [xw, mp.vol0, mp.mu, mp.lam, pk, pw, mp.dx_mm * 1e-3, gs[1], gs[2], grid_view(vin, gs[1], gs[2]), out], device=d)
             res[:, j] = out.numpy()[nodes].astype(np.float64).ravel()
         return res.reshape(v.shape)
 

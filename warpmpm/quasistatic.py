@@ -82,26 +82,6 @@ def node_index(i: int, j: int, k: int, ny: int, nz: int):
     return (i * ny + j) * nz + k
 
 
-@wp.func
-def gather(u: wp.array(dtype=wp.vec3), xp: wp.vec3, dx: float, ny: int, nz: int):
-    """A nodal field ``u`` at a particle at ``xp``: its MLS gradient ``G = 4/dx^2 sum_i w_ip u_i (x_i - x_p)^T`` and its
-    interpolated value ``sum_i w_ip u_i``."""
-    inv_dx = 1.0 / dx
-    base, fx, wx, wy, wz = kernels.stencil(xp, inv_dx)
-    c = 4.0 * inv_dx * inv_dx
-    G = wp.mat33(0.0)
-    up = wp.vec3(0.0)
-    for a in range(3):
-        for b in range(3):
-            for cc in range(3):
-                w = wx[a] * wy[b] * wz[cc]
-                r = (wp.vec3(float(a), float(b), float(cc)) - fx) * dx
-                ui = u[node_index(base[0] + a, base[1] + b, base[2] + cc, ny, nz)]
-                G += (c * w) * wp.outer(ui, r)
-                up += w * ui
-    return G, up
-
-
 @wp.kernel
 def internal_and_drive_forces(
     x: wp.array(dtype=wp.vec3),
@@ -150,6 +130,12 @@ def internal_and_drive_forces(
                 wp.atomic_add(node_mass, n, w * mass[p])
 
 
+def grid_view(nodes: wp.array, ny: int, nz: int) -> wp.array:
+    """A flat node array (index :func:`node_index`) as the (nx, ny, nz) array it is laid out as: a view, no copy (the
+    gathers read nodes by their three indices, :func:`warpmpm.kernels.gather_velocity`)."""
+    return nodes.reshape((nodes.shape[0] // (ny * nz), ny, nz))
+
+
 @wp.kernel
 def apply_stiffness(
     x: wp.array(dtype=wp.vec3),
@@ -161,16 +147,16 @@ def apply_stiffness(
     dx: float,
     ny: int,
     nz: int,
-    v: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3, ndim=3),
     out: wp.array(dtype=wp.vec3),
 ):
     """``out += (K + penalty) v`` for one particle's share: gather ``G_p v`` and the particle's displacement,
-    then scatter ``G_p^T V0 (mu (G + G^T) + lambda tr(G) I)`` and the penalty ``k P (sum w v)``."""
+    then scatter ``G_p^T V0 (mu (G + G^T) + lambda tr(G) I)`` and the penalty ``k P (sum w v)``. ``v``: the nodal
+    vectors as a (nx, ny, nz) view (:func:`grid_view`) of the flat node array ``out`` indexes."""
     p = wp.tid()
     inv_dx = 1.0 / dx
-    xp = x[p]
-    G, vp = gather(v, xp, dx, ny, nz)
-    base, fx, wx, wy, wz = kernels.stencil(xp, inv_dx)
+    base, fx, wx, wy, wz = kernels.stencil(x[p], inv_dx)
+    vp, G = kernels.gather_velocity(v, base, fx, wx, wy, wz, inv_dx)
     c = 4.0 * inv_dx * inv_dx
     dtau = mu[p] * (G + wp.transpose(G)) + (lam[p] * (G[0, 0] + G[1, 1] + G[2, 2])) * wp.identity(n=3, dtype=float)
     s = (c * vol0[p]) * dtau
@@ -371,7 +357,7 @@ def cg_next(scalars: wp.array(dtype=wp.float64)):
 
 @wp.kernel
 def move_particles(
-    du: wp.array(dtype=wp.vec3),
+    du: wp.array(dtype=wp.vec3, ndim=3),
     scale: float,
     apply: int,
     dx: float,
@@ -390,7 +376,9 @@ def move_particles(
     non-finite result or a particle leaving the grid is flagged in ``status`` ([code, first particle]) and not applied."""
     p = wp.tid()
     xp = x[p]
-    G1, u1 = gather(du, xp, dx, ny, nz)
+    inv_dx = 1.0 / dx
+    base, fx, wx, wy, wz = kernels.stencil(xp, inv_dx)
+    u1, G1 = kernels.gather_velocity(du, base, fx, wx, wy, wz, inv_dx)
     G = scale * G1
     up = scale * u1
     new_x = xp + up
@@ -467,6 +455,7 @@ class QuasiStaticSolver:
         self._z = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._p = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._Ap = wp.zeros(nn, dtype=wp.vec3, device=d)
+        self._du3, self._p3, self._r3 = (grid_view(a, ny, nz) for a in (self.du, self._p, self._r))
         self._scalars = wp.zeros(6, dtype=wp.float64, device=d)
         self._partial = wp.zeros((6, DOT_SLOTS), dtype=wp.float64, device=d)
         self.pen_k = wp.zeros(n, dtype=float, device=d)
@@ -517,7 +506,7 @@ class QuasiStaticSolver:
             for _ in range(CG_CHECK_EVERY):
                 self._Ap.zero_()
                 wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz,
-                                                 self._p, self._Ap], device=d)
+                                                 self._p3, self._Ap], device=d)
                 wp.launch(finish_matvec, nn, [self._Ap, self._p, self.node_mass, k_reg, part], device=d)
                 wp.launch(cg_reduce, 1, [part, sc], device=d)
                 wp.launch(cg_advance, nn, [self.inv_diag, self._p, self._Ap, self.du, self._r, self._z, int(not coarse), sc, part],
@@ -583,8 +572,8 @@ class QuasiStaticSolver:
             col[nodes] = Z[:, j]
             v.assign(col)
             self._Ap.zero_()
-            wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz, v,
-                                             self._Ap], device=d)
+            wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz,
+                                             self._r3, self._Ap], device=d)
             wp.launch(finish_matvec, nn, [self._Ap, v, self.node_mass, k_reg, part], device=d)
             AZ[:, j] = self._Ap.numpy()[nodes]
         E = np.einsum("ajc,alc->jl", Z.astype(np.float64), AZ)
@@ -652,7 +641,7 @@ class QuasiStaticSolver:
             capped = not done
             cg_total += n_cg
             # the step's longest particle move (nodes at a stencil's fringe may move far: they carry almost no weight)
-            wp.launch(move_particles, m.n, [self.du, 1.0, 0, self._dx, self._ny, self._nz, self._x_min, self._x_max, state.x, state.F,
+            wp.launch(move_particles, m.n, [self._du3, 1.0, 0, self._dx, self._ny, self._nz, self._x_min, self._x_max, state.x, state.F,
                                             self.move, self.strain, self.status], device=d)
             longest = float(self.move.numpy().max())
             steepest = float(self.strain.numpy().max())
@@ -662,7 +651,7 @@ class QuasiStaticSolver:
             scale = min(1.0, max_step / max(longest, 1e-30), cfg.max_strain_step / max(steepest, 1e-30))
             # Levenberg-Marquardt: a full step trusts the stiffness more (less regularisation), a cut one less
             reg = max(reg / 4.0, REG_RANGE[0]) if scale == 1.0 else min(reg * 4.0, REG_RANGE[1])
-            wp.launch(move_particles, m.n, [self.du, scale, 1, self._dx, self._ny, self._nz, self._x_min, self._x_max, state.x, state.F,
+            wp.launch(move_particles, m.n, [self._du3, scale, 1, self._dx, self._ny, self._nz, self._x_min, self._x_max, state.x, state.F,
                                             self.move, self.strain, self.status], device=d)
             self._check()
             self._err2.zero_()
