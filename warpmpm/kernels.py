@@ -161,6 +161,21 @@ def apic_stress_affine(F: wp.mat33, C: wp.mat33, m: float, V0: float, mu: float,
     return m * C + stress_impulse(F, V0, mu, lam, dt, inv_dx)
 
 
+@wp.func
+def scatter_linear(out: wp.array(dtype=wp.vec3, ndim=3), i0: int, base: wp.vec3i, wx: wp.vec3, wy: wp.vec3, wz: wp.vec3, u0: wp.vec3,
+                   A0: wp.vec3, A1: wp.vec3, A2: wp.vec3):
+    """Add ``w_abc (u0 + a A0 + b A1 + c A2)`` to node ``(i0 + base[0] + a, base[1] + b, base[2] + c)`` of a particle's
+    3x3x3 stencil, the sum built up along the loops (``w (u + M (abc - fx) dx)`` with ``u0 = u - M fx dx`` and ``A_k``
+    the k-th column of ``M dx``: no matrix-vector product a node)."""
+    for a in range(3):
+        ua = u0 + float(a) * A0
+        for b in range(3):
+            uab = ua + float(b) * A1
+            wab = wx[a] * wy[b]
+            for c in range(3):
+                wp.atomic_add(out, i0 + base[0] + a, base[1] + b, base[2] + c, (wab * wz[c]) * (uab + float(c) * A2))
+
+
 @wp.kernel
 def p2g(
     x: wp.array(dtype=wp.vec3),
@@ -223,14 +238,7 @@ def p2g(
         S0 = wp.vec3(Sdx[0, 0], Sdx[1, 0], Sdx[2, 0])
         S1 = wp.vec3(Sdx[0, 1], Sdx[1, 1], Sdx[2, 1])
         S2 = wp.vec3(Sdx[0, 2], Sdx[1, 2], Sdx[2, 2])
-        f0 = impulse - Sdx * fx
-        for a in range(3):
-            fa = f0 + float(a) * S0
-            for b in range(3):
-                fab = fa + float(b) * S1
-                wab = wx[a] * wy[b]
-                for c in range(3):
-                    wp.atomic_add(grid_f, part_nx + base[0] + a, base[1] + b, base[2] + c, (wab * wz[c]) * (fab + float(c) * S2))
+        scatter_linear(grid_f, part_nx, base, wx, wy, wz, impulse - Sdx * fx, S0, S1, S2)
 
 
 @wp.func

@@ -148,11 +148,12 @@ def apply_stiffness(
     ny: int,
     nz: int,
     v: wp.array(dtype=wp.vec3, ndim=3),
-    out: wp.array(dtype=wp.vec3),
+    out: wp.array(dtype=wp.vec3, ndim=3),
 ):
     """``out += (K + penalty) v`` for one particle's share: gather ``G_p v`` and the particle's displacement,
-    then scatter ``G_p^T V0 (mu (G + G^T) + lambda tr(G) I)`` and the penalty ``k P (sum w v)``. ``v``: the nodal
-    vectors as a (nx, ny, nz) view (:func:`grid_view`) of the flat node array ``out`` indexes."""
+    then scatter ``G_p^T V0 (mu (G + G^T) + lambda tr(G) I)`` and the penalty ``k P (sum w v)``. ``v``, ``out``: nodal
+    vectors as (nx, ny, nz) views of flat node arrays (:func:`grid_view`); the weights factorised by axis in both
+    (:func:`warpmpm.kernels.gather_velocity`, :func:`warpmpm.kernels.scatter_linear`)."""
     p = wp.tid()
     inv_dx = 1.0 / dx
     base, fx, wx, wy, wz = kernels.stencil(x[p], inv_dx)
@@ -161,12 +162,9 @@ def apply_stiffness(
     dtau = mu[p] * (G + wp.transpose(G)) + (lam[p] * (G[0, 0] + G[1, 1] + G[2, 2])) * wp.identity(n=3, dtype=float)
     s = (c * vol0[p]) * dtau
     fd = pen_k[p] * (pen_P[p] * vp)
-    for a in range(3):
-        for b in range(3):
-            for cc in range(3):
-                w = wx[a] * wy[b] * wz[cc]
-                r = (wp.vec3(float(a), float(b), float(cc)) - fx) * dx
-                wp.atomic_add(out, node_index(base[0] + a, base[1] + b, base[2] + cc, ny, nz), w * (s * r + fd))
+    S = s * dx
+    kernels.scatter_linear(out, 0, base, wx, wy, wz, fd - S * fx, wp.vec3(S[0, 0], S[1, 0], S[2, 0]), wp.vec3(S[0, 1], S[1, 1], S[2, 1]),
+                           wp.vec3(S[0, 2], S[1, 2], S[2, 2]))
 
 
 @wp.kernel
@@ -455,7 +453,7 @@ class QuasiStaticSolver:
         self._z = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._p = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._Ap = wp.zeros(nn, dtype=wp.vec3, device=d)
-        self._du3, self._p3, self._r3 = (grid_view(a, ny, nz) for a in (self.du, self._p, self._r))
+        self._du3, self._p3, self._r3, self._Ap3 = (grid_view(a, ny, nz) for a in (self.du, self._p, self._r, self._Ap))
         self._scalars = wp.zeros(6, dtype=wp.float64, device=d)
         self._partial = wp.zeros((6, DOT_SLOTS), dtype=wp.float64, device=d)
         self.pen_k = wp.zeros(n, dtype=float, device=d)
@@ -506,7 +504,7 @@ class QuasiStaticSolver:
             for _ in range(CG_CHECK_EVERY):
                 self._Ap.zero_()
                 wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz,
-                                                 self._p3, self._Ap], device=d)
+                                                 self._p3, self._Ap3], device=d)
                 wp.launch(finish_matvec, nn, [self._Ap, self._p, self.node_mass, k_reg, part], device=d)
                 wp.launch(cg_reduce, 1, [part, sc], device=d)
                 wp.launch(cg_advance, nn, [self.inv_diag, self._p, self._Ap, self.du, self._r, self._z, int(not coarse), sc, part],
@@ -573,7 +571,7 @@ class QuasiStaticSolver:
             v.assign(col)
             self._Ap.zero_()
             wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz,
-                                             self._r3, self._Ap], device=d)
+                                             self._r3, self._Ap3], device=d)
             wp.launch(finish_matvec, nn, [self._Ap, v, self.node_mass, k_reg, part], device=d)
             AZ[:, j] = self._Ap.numpy()[nodes]
         E = np.einsum("ajc,alc->jl", Z.astype(np.float64), AZ)
