@@ -82,7 +82,7 @@ def stiffness_operator(est, x0_m: np.ndarray, nodes: np.ndarray):
             full[nodes] = v2[:, j].reshape(na, 3)
             vin.assign(full.astype(np.float32))
             out.zero_()
-            wp.launch(apply_stiffness, mp.n, [xw, mp.vol0, mp.mu, mp.lam, pk, pw, mp.dx_mm * 1e-3, gs[1], gs[2], grid_view(vin, gs[1], gs[2]), grid_view(out, gs[1], gs[2])], device=d)
+            wp.launch(apply_stiffness, mp.n, [xw, mp.vol0, mp.mu, mp.lam, pk, pw, mp.dx_mm * 1e-3, gs[1], gs[2], grid_view(vin, gs[1], gs[2]), 0, grid_view(out, gs[1], gs[2])], device=d)
             res[:, j] = out.numpy()[nodes].astype(np.float64).ravel()
         return res.reshape(v.shape)
 

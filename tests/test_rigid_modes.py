@@ -116,7 +116,7 @@ def test_the_coarse_matrices_are_the_grid_stiffness_and_mass_of_the_group_motion
             v.assign(full)
             out.zero_()
             wp.launch(qs.apply_stiffness, m.n, [est.state.x, mm.vol0, mm.mu, mm.lam, wp.array(pen_k, dtype=float, device="cpu"),
-                                                wp.array(P, dtype=wp.mat33, device="cpu"), mm.dx_mm * 1e-3, ny, nz, qs.grid_view(v, ny, nz), qs.grid_view(out, ny, nz)], device="cpu")
+                                                wp.array(P, dtype=wp.mat33, device="cpu"), mm.dx_mm * 1e-3, ny, nz, qs.grid_view(v, ny, nz), 0, qs.grid_view(out, ny, nz)], device="cpu")
             col = np.einsum("akc,ac->k", Z, out.numpy()[nodes].astype(np.float64))
             np.testing.assert_allclose(c["E"][:, j], col, atol=1e-5 * np.abs(c["E"]).max())
 

@@ -53,9 +53,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from . import kernels
+from . import kernels, parallel
 from .errors import InputError, SimulationError
-from .solver import MPMModel, QuasiStaticConfig, State
+from .solver import MPMModel, QuasiStaticConfig, State, cpu_threads
 
 # forward kernels only, no adjoints to compile (why: warpmpm.kernels)
 wp.set_module_options({"enable_backward": False})
@@ -148,12 +148,15 @@ def apply_stiffness(
     ny: int,
     nz: int,
     v: wp.array(dtype=wp.vec3, ndim=3),
+    i0: int,
     out: wp.array(dtype=wp.vec3, ndim=3),
 ):
     """``out += (K + penalty) v`` for one particle's share: gather ``G_p v`` and the particle's displacement,
     then scatter ``G_p^T V0 (mu (G + G^T) + lambda tr(G) I)`` and the penalty ``k P (sum w v)``. ``v``, ``out``: nodal
     vectors as (nx, ny, nz) views of flat node arrays (:func:`grid_view`); the weights factorised by axis in both
-    (:func:`warpmpm.kernels.gather_velocity`, :func:`warpmpm.kernels.scatter_linear`)."""
+    (:func:`warpmpm.kernels.gather_velocity`, :func:`warpmpm.kernels.scatter_linear`). ``i0``: where along x this
+    launch's copy of ``out`` starts (a launch over part of the particles on a thread of its own scatters into a copy of
+    its own, :mod:`warpmpm.parallel`; 0 for a whole launch); :func:`finish_matvec` adds the copies."""
     p = wp.tid()
     inv_dx = 1.0 / dx
     base, fx, wx, wy, wz = kernels.stencil(x[p], inv_dx)
@@ -163,26 +166,33 @@ def apply_stiffness(
     s = (c * vol0[p]) * dtau
     fd = pen_k[p] * (pen_P[p] * vp)
     S = s * dx
-    kernels.scatter_linear(out, 0, base, wx, wy, wz, fd - S * fx, wp.vec3(S[0, 0], S[1, 0], S[2, 0]), wp.vec3(S[0, 1], S[1, 1], S[2, 1]),
+    kernels.scatter_linear(out, i0, base, wx, wy, wz, fd - S * fx, wp.vec3(S[0, 0], S[1, 0], S[2, 0]), wp.vec3(S[0, 1], S[1, 1], S[2, 1]),
                            wp.vec3(S[0, 2], S[1, 2], S[2, 2]))
 
 
 @wp.kernel
 def finish_matvec(
     Av: wp.array(dtype=wp.vec3),
+    parts: int,
     v: wp.array(dtype=wp.vec3),
     node_mass: wp.array(dtype=float),
     k_reg: float,
     partial: wp.array(dtype=wp.float64, ndim=2),
 ):
     """``Av <- A v`` with ``A = K + k_reg M`` on the nodes particles touch and the identity elsewhere (an untouched
-    node has no force and keeps a zero displacement); ``v . A v`` into ``partial[PAP]``."""
+    node has no force and keeps a zero displacement); ``v . A v`` into ``partial[PAP]``. ``Av`` holds ``parts``
+    copies of the node array one after the other (one per thread of a split :func:`apply_stiffness`): they are added
+    into the first."""
     i = wp.tid()
     mi = node_mass[i]
     vi = v[i]
     a = vi
     if mi > 0.0:
-        a = Av[i] + (k_reg * mi) * vi
+        nn = node_mass.shape[0]
+        a = Av[i]
+        for q in range(1, parts):
+            a += Av[q * nn + i]
+        a += (k_reg * mi) * vi
     Av[i] = a
     add_partial(partial, PAP, i, wp.float64(wp.dot(vi, a)))
 
@@ -367,6 +377,7 @@ def move_particles(
     F: wp.array(dtype=wp.mat33),
     move: wp.array(dtype=float),
     strain: wp.array(dtype=float),
+    index0: int,
     status: wp.array(dtype=int),
 ):
     """Move every particle by the interpolated grid displacement ``scale du`` and update ``F <- (I + G du) F``;
@@ -393,7 +404,7 @@ def move_particles(
         code = kernels.STATUS_LEFT_GRID
     if code != 0:
         wp.atomic_max(status, 0, code)
-        wp.atomic_min(status, 1, p)
+        wp.atomic_min(status, 1, index0 + p)
         move[p] = 0.0
     else:
         x[p] = new_x
@@ -452,8 +463,15 @@ class QuasiStaticSolver:
         self._r = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._z = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._p = wp.zeros(nn, dtype=wp.vec3, device=d)
-        self._Ap = wp.zeros(nn, dtype=wp.vec3, device=d)
-        self._du3, self._p3, self._r3, self._Ap3 = (grid_view(a, ny, nz) for a in (self.du, self._p, self._r, self._Ap))
+        #: threads of the particle kernels of an iteration (the explicit step's, :func:`warpmpm.solver.cpu_threads`); a
+        #: split product scatters into a copy of ``_Ap`` per thread (stacked along x), a split move flags its own status
+        self.threads = cpu_threads(model.config, d)
+        self._ranges = parallel.split(n, self.threads)
+        self.threads = len(self._ranges)
+        self._views = parallel.ChunkViews(self._ranges)
+        self._Ap_copies = wp.zeros(nn * self.threads, dtype=wp.vec3, device=d)
+        self._Ap = self._Ap_copies[:nn]
+        self._du3, self._p3, self._r3, self._Ap3 = (grid_view(a, ny, nz) for a in (self.du, self._p, self._r, self._Ap_copies))
         self._scalars = wp.zeros(6, dtype=wp.float64, device=d)
         self._partial = wp.zeros((6, DOT_SLOTS), dtype=wp.float64, device=d)
         self.pen_k = wp.zeros(n, dtype=float, device=d)
@@ -463,7 +481,8 @@ class QuasiStaticSolver:
         self.move = wp.zeros(n, dtype=float, device=d)
         self.strain = wp.zeros(n, dtype=float, device=d)
         self._err2 = wp.zeros(1, dtype=float, device=d)
-        self.status = wp.array(np.array([0, 2**31 - 1], dtype=np.int32), dtype=int, device=d)
+        self._status_parts = [wp.array(np.array([0, 2**31 - 1], dtype=np.int32), dtype=int, device=d) for _ in range(self.threads)]
+        self.status = self._status_parts[0]
         self._x_min = 1.0 * self._dx
         self._x_max = wp.vec3(*[(s - 2.0) * self._dx for s in model.grid_shape])
         lam = model.particles.per_particle("lam_pa")
@@ -502,10 +521,7 @@ class QuasiStaticSolver:
         done = False
         while it < max_iterations:
             for _ in range(CG_CHECK_EVERY):
-                self._Ap.zero_()
-                wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz,
-                                                 self._p3, self._Ap3], device=d)
-                wp.launch(finish_matvec, nn, [self._Ap, self._p, self.node_mass, k_reg, part], device=d)
+                self._product(state, self._p, self._p3, k_reg, part)
                 wp.launch(cg_reduce, 1, [part, sc], device=d)
                 wp.launch(cg_advance, nn, [self.inv_diag, self._p, self._Ap, self.du, self._r, self._z, int(not coarse), sc, part],
                           device=d)
@@ -523,6 +539,37 @@ class QuasiStaticSolver:
                 done = True
                 break
         return it, done
+
+    def _product(self, state: State, v: wp.array, v3: wp.array, k_reg: float, part: wp.array) -> None:
+        """``_Ap <- A v`` (:func:`apply_stiffness` then :func:`finish_matvec`; ``v3``: ``v`` as :func:`grid_view`), the
+        particles split over :attr:`threads` (each thread's share scattered into its own copy of ``_Ap``)."""
+        m, d = self.model, self.model.device
+        self._Ap_copies.zero_()
+        if self.threads == 1:
+            wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz, v3, 0,
+                                             self._Ap3], device=d)
+        else:
+            nx = m.grid_shape[0]
+            x, vol0, mu, lam, pk, pP = (self._views(a) for a in (state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P))
+            parallel.run_together(
+                lambda k=k: wp.launch(apply_stiffness, x[k].shape[0], [x[k], vol0[k], mu[k], lam[k], pk[k], pP[k], self._dx, self._ny,
+                                                                      self._nz, v3, k * nx, self._Ap3], device=d)
+                for k in range(self.threads))
+        wp.launch(finish_matvec, self.n_nodes, [self._Ap_copies, self.threads, v, self.node_mass, k_reg, part], device=d)
+
+    def _move(self, state: State, scale: float, apply: int) -> None:
+        """:func:`move_particles` by ``scale du``, the particles split over :attr:`threads` (each flags its own status)."""
+        d = self.model.device
+        args = (self._dx, self._ny, self._nz, self._x_min, self._x_max)
+        if self.threads == 1:
+            wp.launch(move_particles, self.model.n, [self._du3, scale, apply, *args, state.x, state.F, self.move, self.strain, 0,
+                                                     self.status], device=d)
+            return
+        x, F, mv, st = (self._views(a) for a in (state.x, state.F, self.move, self.strain))
+        parallel.run_together(
+            lambda k=k: wp.launch(move_particles, x[k].shape[0], [self._du3, scale, apply, *args, x[k], F[k], mv[k], st[k],
+                                                                  self._ranges[k][0], self._status_parts[k]], device=d)
+            for k in range(self.threads))
 
     def _coarse_correct(self) -> None:
         """``z += Z E^-1 Z^T r`` (device only)."""
@@ -569,10 +616,7 @@ class QuasiStaticSolver:
             col = np.zeros((nn, 3), dtype=np.float32)
             col[nodes] = Z[:, j]
             v.assign(col)
-            self._Ap.zero_()
-            wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz,
-                                             self._r3, self._Ap3], device=d)
-            wp.launch(finish_matvec, nn, [self._Ap, v, self.node_mass, k_reg, part], device=d)
+            self._product(state, v, self._r3, k_reg, part)
             AZ[:, j] = self._Ap.numpy()[nodes]
         E = np.einsum("ajc,alc->jl", Z.astype(np.float64), AZ)
         E = 0.5 * (E + E.T)
@@ -639,8 +683,7 @@ class QuasiStaticSolver:
             capped = not done
             cg_total += n_cg
             # the step's longest particle move (nodes at a stencil's fringe may move far: they carry almost no weight)
-            wp.launch(move_particles, m.n, [self._du3, 1.0, 0, self._dx, self._ny, self._nz, self._x_min, self._x_max, state.x, state.F,
-                                            self.move, self.strain, self.status], device=d)
+            self._move(state, 1.0, 0)
             longest = float(self.move.numpy().max())
             steepest = float(self.strain.numpy().max())
             if not math.isfinite(longest):
@@ -649,8 +692,7 @@ class QuasiStaticSolver:
             scale = min(1.0, max_step / max(longest, 1e-30), cfg.max_strain_step / max(steepest, 1e-30))
             # Levenberg-Marquardt: a full step trusts the stiffness more (less regularisation), a cut one less
             reg = max(reg / 4.0, REG_RANGE[0]) if scale == 1.0 else min(reg * 4.0, REG_RANGE[1])
-            wp.launch(move_particles, m.n, [self._du3, scale, 1, self._dx, self._ny, self._nz, self._x_min, self._x_max, state.x, state.F,
-                                            self.move, self.strain, self.status], device=d)
+            self._move(state, scale, 1)
             self._check()
             self._err2.zero_()
             wp.launch(update_multipliers, nd, [self._driven_wp, state.x, self.pen_k, self.pen_P, self.target, self.multiplier,
@@ -671,10 +713,13 @@ class QuasiStaticSolver:
         return QuasiStaticResult(it, cg_total, settled, move_hist[-1] if move_hist else 0.0, rms_hist, move_hist)
 
     def _check(self) -> None:
-        code, particle = (int(v) for v in self.status.numpy())
+        flags = np.stack([a.numpy() for a in self._status_parts])
+        code = int(flags[:, 0].max())
         if code == kernels.STATUS_OK:
             return
-        self.status.assign(np.array([0, 2**31 - 1], dtype=np.int32))
+        particle = int(flags[flags[:, 0] > 0, 1].min())
+        for a in self._status_parts:
+            a.assign(np.array([0, 2**31 - 1], dtype=np.int32))
         organ = self.model.particles.organs[int(self.model.particles.organ_index[particle])]
         if code == kernels.STATUS_NONFINITE:
             raise SimulationError(f"quasi-static solve: non-finite position or deformation at particle {particle} ({organ})")
