@@ -97,13 +97,16 @@ def internal_and_drive_forces(
     dx: float,
     ny: int,
     nz: int,
+    n0: int,
     force: wp.array(dtype=wp.vec3),
     diag: wp.array(dtype=wp.vec3),
     node_mass: wp.array(dtype=float),
 ):
     """Nodal force (N): the internal force of the fixed-corotated stress of ``F`` and the driven particles' penalty
     and multiplier forces; the diagonal of the small-strain stiffness plus the penalty (Jacobi preconditioner); and
-    the nodal mass (kg, of the solver's scaled densities) for the regularisation."""
+    the nodal mass (kg, of the solver's scaled densities) for the regularisation. ``n0``: the first node of this
+    launch's copy of the three node arrays (a launch over part of the particles on a thread of its own, added by
+    :func:`add_copies`; 0 for a whole launch)."""
     p = wp.tid()
     inv_dx = 1.0 / dx
     xp = x[p]
@@ -121,7 +124,7 @@ def internal_and_drive_forces(
             for cc in range(3):
                 w = wx[a] * wy[b] * wz[cc]
                 r = (wp.vec3(float(a), float(b), float(cc)) - fx) * dx
-                n = node_index(base[0] + a, base[1] + b, base[2] + cc, ny, nz)
+                n = n0 + node_index(base[0] + a, base[1] + b, base[2] + cc, ny, nz)
                 wp.atomic_add(force, n, w * (fd - s * r))
                 cw2 = V * (c * w) * (c * w)
                 r2 = wp.dot(r, r)
@@ -134,6 +137,28 @@ def grid_view(nodes: wp.array, ny: int, nz: int) -> wp.array:
     """A flat node array (index :func:`node_index`) as the (nx, ny, nz) array it is laid out as: a view, no copy (the
     gathers read nodes by their three indices, :func:`warpmpm.kernels.gather_velocity`)."""
     return nodes.reshape((nodes.shape[0] // (ny * nz), ny, nz))
+
+
+@wp.kernel
+def add_copies(force: wp.array(dtype=wp.vec3), diag: wp.array(dtype=wp.vec3), node_mass: wp.array(dtype=float), parts: int):
+    """Add the ``parts`` copies of :func:`internal_and_drive_forces`' node arrays (one after the other, one per
+    thread) into the first, and clear the others (so only the first needs clearing before the next scatter)."""
+    i = wp.tid()
+    nn = force.shape[0] // parts
+    f = force[i]
+    dg = diag[i]
+    mi = node_mass[i]
+    for q in range(1, parts):
+        j = q * nn + i
+        f += force[j]
+        dg += diag[j]
+        mi += node_mass[j]
+        force[j] = wp.vec3(0.0)
+        diag[j] = wp.vec3(0.0)
+        node_mass[j] = 0.0
+    force[i] = f
+    diag[i] = dg
+    node_mass[i] = mi
 
 
 @wp.kernel
@@ -182,17 +207,19 @@ def finish_matvec(
     """``Av <- A v`` with ``A = K + k_reg M`` on the nodes particles touch and the identity elsewhere (an untouched
     node has no force and keeps a zero displacement); ``v . A v`` into ``partial[PAP]``. ``Av`` holds ``parts``
     copies of the node array one after the other (one per thread of a split :func:`apply_stiffness`): they are added
-    into the first."""
+    into the first and cleared (so only the first needs clearing before the next product)."""
     i = wp.tid()
     mi = node_mass[i]
     vi = v[i]
-    a = vi
+    nn = node_mass.shape[0]
+    a = Av[i]
+    for q in range(1, parts):
+        a += Av[q * nn + i]
+        Av[q * nn + i] = wp.vec3(0.0)
     if mi > 0.0:
-        nn = node_mass.shape[0]
-        a = Av[i]
-        for q in range(1, parts):
-            a += Av[q * nn + i]
         a += (k_reg * mi) * vi
+    else:
+        a = vi
     Av[i] = a
     add_partial(partial, PAP, i, wp.float64(wp.dot(vi, a)))
 
@@ -451,10 +478,18 @@ class QuasiStaticSolver:
         self._ny, self._nz = ny, nz
         self._dx = model.dx_mm * 1e-3
         nn, n = self.n_nodes, model.n
-        self.force = wp.zeros(nn, dtype=wp.vec3, device=d)
-        self.diag = wp.zeros(nn, dtype=wp.vec3, device=d)
+        #: threads of the particle kernels of an iteration (the explicit step's, :func:`warpmpm.solver.cpu_threads`); a
+        #: split kernel scatters into a copy of its node arrays per thread, a split move flags its own status
+        self.threads = cpu_threads(model.config, d)
+        self._ranges = parallel.split(n, self.threads)
+        self.threads = len(self._ranges)
+        self._views = parallel.ChunkViews(self._ranges)
+        copies = nn * self.threads
+        self._force_copies = wp.zeros(copies, dtype=wp.vec3, device=d)
+        self._diag_copies = wp.zeros(copies, dtype=wp.vec3, device=d)
+        self._mass_copies = wp.zeros(copies, dtype=float, device=d)
+        self.force, self.diag, self.node_mass = (a[:nn] for a in (self._force_copies, self._diag_copies, self._mass_copies))
         self.inv_diag = wp.zeros(nn, dtype=wp.vec3, device=d)
-        self.node_mass = wp.zeros(nn, dtype=float, device=d)
         # regularisation k_reg M: at a node full of particles it is ``regularization`` times their stiffness scale
         # (M 4 c^2 / dx^2 ~ (lambda + 2 mu) V 4 / dx^2 under mass scaling); at a stencil's fringe, where a node carries
         # little weight, it dominates (mass ~ w, stiffness ~ w^2), so such nodes cannot swing far
@@ -463,12 +498,6 @@ class QuasiStaticSolver:
         self._r = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._z = wp.zeros(nn, dtype=wp.vec3, device=d)
         self._p = wp.zeros(nn, dtype=wp.vec3, device=d)
-        #: threads of the particle kernels of an iteration (the explicit step's, :func:`warpmpm.solver.cpu_threads`); a
-        #: split product scatters into a copy of ``_Ap`` per thread (stacked along x), a split move flags its own status
-        self.threads = cpu_threads(model.config, d)
-        self._ranges = parallel.split(n, self.threads)
-        self.threads = len(self._ranges)
-        self._views = parallel.ChunkViews(self._ranges)
         self._Ap_copies = wp.zeros(nn * self.threads, dtype=wp.vec3, device=d)
         self._Ap = self._Ap_copies[:nn]
         self._du3, self._p3, self._r3, self._Ap3 = (grid_view(a, ny, nz) for a in (self.du, self._p, self._r, self._Ap_copies))
@@ -540,11 +569,29 @@ class QuasiStaticSolver:
                 break
         return it, done
 
+    def _forces(self, state: State) -> None:
+        """:func:`internal_and_drive_forces` into ``force``, ``diag`` and ``node_mass``, the particles split over
+        :attr:`threads` (each thread's share into its own copy of the three, added by :func:`add_copies`)."""
+        m, d = self.model, self.model.device
+        for a in (self.force, self.diag, self.node_mass):  # the other copies were cleared when last added
+            a.zero_()
+        per_particle = (state.x, state.F, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self.target, self.multiplier, m.mass)
+        outs = (self._force_copies, self._diag_copies, self._mass_copies)
+        if self.threads == 1:
+            wp.launch(internal_and_drive_forces, m.n, [*per_particle, self._dx, self._ny, self._nz, 0, *outs], device=d)
+            return
+        views = [self._views(a) for a in per_particle]
+        parallel.run_together(
+            lambda k=k: wp.launch(internal_and_drive_forces, views[0][k].shape[0],
+                                  [*(v[k] for v in views), self._dx, self._ny, self._nz, k * self.n_nodes, *outs], device=d)
+            for k in range(self.threads))
+        wp.launch(add_copies, self.n_nodes, [*outs, self.threads], device=d)
+
     def _product(self, state: State, v: wp.array, v3: wp.array, k_reg: float, part: wp.array) -> None:
         """``_Ap <- A v`` (:func:`apply_stiffness` then :func:`finish_matvec`; ``v3``: ``v`` as :func:`grid_view`), the
         particles split over :attr:`threads` (each thread's share scattered into its own copy of ``_Ap``)."""
         m, d = self.model, self.model.device
-        self._Ap_copies.zero_()
+        self._Ap.zero_()  # the other copies were cleared when last added
         if self.threads == 1:
             wp.launch(apply_stiffness, m.n, [state.x, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self._dx, self._ny, self._nz, v3, 0,
                                              self._Ap3], device=d)
@@ -651,6 +698,8 @@ class QuasiStaticSolver:
         then goes on explicitly."""
         cfg, m, d = self.config, self.model, self.model.device
         self._state = state
+        for a in (self._force_copies, self._diag_copies, self._mass_copies, self._Ap_copies):  # whatever an interrupted
+            a.zero_()  # solve left in the extra copies (each scatter clears only the first, add_copies the others)
         state.v.zero_()
         state.C.zero_()
         state.x_carry.zero_()
@@ -663,12 +712,7 @@ class QuasiStaticSolver:
         it = 0
         capped = False
         for it in range(1, (cfg.max_newton_iterations if max_iterations is None else int(max_iterations)) + 1):
-            self.force.zero_()
-            self.diag.zero_()
-            self.node_mass.zero_()
-            wp.launch(internal_and_drive_forces, m.n, [state.x, state.F, m.vol0, m.mu, m.lam, self.pen_k, self.pen_P, self.target,
-                                                       self.multiplier, m.mass, self._dx, self._ny, self._nz, self.force, self.diag,
-                                                       self.node_mass], device=d)
+            self._forces(state)
             k_reg = self._k_reg * reg
             wp.launch(inverse_diagonal, self.n_nodes, [self.diag, self.node_mass, k_reg, self.inv_diag], device=d)
             # Jacobi alone first: a frame that starts near its equilibrium (a predicted tracker frame) is solved before
