@@ -6,7 +6,9 @@ interpreter lock while the kernel runs: launches of the same kernel over disjoin
 made from several threads, run at the same time. :class:`MPMSolver <warpmpm.solver.MPMSolver>` splits its
 particle kernels that way (P2G into a copy of the grid per thread, summed by the grid update; G2P; the
 grid update over slabs of nodes); the launches that depend on a whole pass (the grid update after P2G,
-G2P after the grid update) wait for every thread.
+G2P after the grid update) wait for every thread. :class:`QuasiStaticSolver <warpmpm.quasistatic.QuasiStaticSolver>`
+splits its particle kernels the same way (the Newton iteration's forces and the conjugate gradient's product, each
+thread into its own copy of the node arrays, added by the next kernel; the particle moves).
 
 Nothing here runs on CUDA, where one launch already fills the device, nor while a graph is being
 captured (the captured launch list must be the whole-array one).
