@@ -226,7 +226,8 @@ class SolverConfig:
         rigid_mode_basis: the motions of each cube in that coarse space: ``"rigid"`` (6: translations and rotations)
             or ``"affine"`` (12: also stretches and shears, so the soft tissue between cubes can shear in the coarse
             space: fewer steps, more work a step). Default :data:`RIGID_MODE_BASIS` (its comment has the measurement).
-        cpu_threads: on the CPU, threads an explicit step splits its particle and grid kernels over
+        cpu_threads: on the CPU, threads an explicit step splits its particle and grid kernels over, and the
+            quasi-static solver its particle kernels
             (:mod:`warpmpm.parallel`: Warp runs each CPU launch on one core, and launches over disjoint
             particle ranges from several threads run at once; each thread scatters into a grid copy of its
             own). None (default): the environment variable ``WARPMPM_CPU_THREADS`` when set, else every core
