@@ -113,7 +113,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="contact between organs in the estimate: one shared grid velocity (sticky) or a field per organ "
                    "that lets touching organs slide and separate (sliding)")
     p.add_argument("--gt-contact", default=None, choices=["sticky", "sliding"], help="contact in the ground truth (default: --contact)")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads an explicit step is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads a step or a Newton iteration is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
     p.add_argument("--friction", type=float, default=0.0, help="Coulomb friction of sliding contact (0: frictionless)")
     p.add_argument("--no-volume-registration", action="store_true", help="skip the (slow) 3D registration baseline")
     p.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
@@ -201,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--reference", default="estimate", choices=["estimate", "previous-frame"],
                    help="what each frame is registered against: the current estimate rendered on the frame's plane (default; "
                    "registration errors do not add up) or the plane's last frame (the first: the planning image)")
-    k.add_argument("--threads", type=int, default=None, help="CPU threads an explicit step is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
+    k.add_argument("--threads", type=int, default=None, help="CPU threads a step or a Newton iteration is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
     k.add_argument("--no-predict", action="store_true",
                    help="start each frame from the last estimate, not from the frame's per-organ motion applied to every particle")
     k.add_argument("--rrd", default=None, help="also write a Rerun recording: the cine frames in their 3D planes beside the estimate")
