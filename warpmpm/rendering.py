@@ -73,11 +73,11 @@ def backward_displacement(geometry: Geometry, planning_mm: np.ndarray, positions
     inner = np.asarray(_crop_offset(fg, geometry))
     offset = tuple(int(v) for v in inner + cut)  # out_g's first voxel in fg
     ijk = np.rint(geometry.world_to_index(positions_mm)).astype(np.int64)  # each particle's nearest voxel, once
-    near_acc, near_range = _scatter(ijk, geometry.size, u, (1, 1, 1))
+    near_acc, near_range = scatter_displacements(ijk, geometry.size, u, (1, 1, 1))
     near, den_near, peak = _fill_near(geometry, near_acc, sigma_mm, near_range, cut, out_g.size)
     # whole voxels a coarse cell, leaving the 4 cells a side the recursive filter needs
     factors = tuple(max(1, min(int(far_sigma_mm / FAR_CELLS_PER_SIGMA / s), n // 4)) for s, n in zip(fg.spacing_mm, fg.size))
-    far_acc, far_range = _scatter(ijk + inner, fg.size, u, factors)
+    far_acc, far_range = scatter_displacements(ijk + inner, fg.size, u, factors)
     far_coarse, _ = _fill(_coarse_geometry(fg, factors), far_acc, far_sigma_mm, far_range, blend=True)
     far = _upsample(far_coarse, factors, offset, near.shape[:3])
     weight = np.clip(den_near * (4.0 / max(peak, 1e-12)), 0.0, 1.0)[..., None]
@@ -132,9 +132,9 @@ def _crop_offset(outer: Geometry, inner: Geometry) -> tuple[int, int, int]:
     return tuple(int(v) for v in off)
 
 
-def _scatter(ijk: np.ndarray, size, u: np.ndarray, factors) -> tuple[np.ndarray, np.ndarray]:
+def scatter_displacements(ijk: np.ndarray, size, u: np.ndarray, factors) -> tuple[np.ndarray, np.ndarray]:
     """Each particle's count and backward displacement ``-u`` added at its nearest voxel ``ijk`` (N, 3: x, y, z) of a
-    grid of ``size`` voxels (z, y, x, 4: count, then the three components' sums; particles outside left out), summed
+    grid of ``size`` voxels (the rendering's fills; the tracker's forward field passes ``-u``) (z, y, x, 4: count, then the three components' sums; particles outside left out), summed
     over blocks of ``factors`` (x, y, z) voxels; and the mean, least and largest backward displacement of the particles
     inside the grid (3 x 3: rows mean, least, largest; :func:`_normalise`)."""
     inside = np.all((ijk >= 0) & (ijk < np.asarray(size)), axis=1)
@@ -152,7 +152,7 @@ def _scatter(ijk: np.ndarray, size, u: np.ndarray, factors) -> tuple[np.ndarray,
 
 
 def _coarse_geometry(geometry: Geometry, factors) -> Geometry:
-    """The grid of :func:`_scatter`'s blocks of ``factors`` voxels: its voxel centres are the blocks' centres."""
+    """The grid of :func:`scatter_displacements`'s blocks of ``factors`` voxels: its voxel centres are the blocks' centres."""
     fx, fy, fz = factors
     origin = geometry.index_to_world(np.array([[(fx - 1) / 2, (fy - 1) / 2, (fz - 1) / 2]]))[0]
     size = tuple(-(-n // f) for n, f in zip(geometry.size, factors))
@@ -180,7 +180,7 @@ def _normalise(sm: np.ndarray, peak: float, u_range: np.ndarray, blend: bool = F
     are not Gaussian (they go negative), so far from every particle the ratio is noise: measured on the default
     phantom under a smooth motion (the far fill), up to 0.3 mm outside the particles' range of displacements where
     the count is 3e-3 to 1e-2 of its peak, 3 mm at 1e-3 to 3e-3, 40 mm to 1e5 mm below. So the ratio is clamped to the
-    particles' range (``u_range``: rows mean, least, largest, from :func:`_scatter`), which a weighted mean with
+    particles' range (``u_range``: rows mean, least, largest, from :func:`scatter_displacements`), which a weighted mean with
     positive weights never leaves, and is the particles' mean displacement below :data:`FILL_FLOOR` of ``peak``.
     ``blend`` (the far fill, whose value is the field there): between :data:`FILL_FLOOR` and :data:`FILL_TRUST` the
     two are blended, smoothly in log count. Before (fourteenth session) the fill switched to the mean at the floor: a

@@ -33,7 +33,7 @@ from .errors import InputError, InputWarning
 from .images import ORGANS, Case
 from .model import ParticleModel, build_model
 from .registration import BACKENDS, register_slice_organs
-from .rendering import particle_label_map, render_plane
+from .rendering import particle_label_map, render_plane, scatter_displacements
 from .solver import SolverConfig
 
 TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "settled", "body_motion_mm", "reason",
@@ -319,22 +319,14 @@ def displacement_field(model: ParticleModel, positions_mm: np.ndarray, case: Cas
     hi = np.minimum(ijk.max(0) + margin + 1, size)
     box = tuple(int(v) for v in hi - lo)
     sub = g.crop(tuple(int(v) for v in lo), tuple(int(v) for v in hi))
-    rel = ijk - lo
-    flat = np.ravel_multi_index((rel[:, 2], rel[:, 1], rel[:, 0]), box[::-1])
-    u = positions_mm - model.positions_mm
-
-    def smooth(weights):
-        a = np.bincount(flat, weights=weights, minlength=int(np.prod(box))).reshape(box[::-1]).astype(np.float32)
-        return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(sub.apply_to(sitk.GetImageFromArray(a)), sigma_mm))
-
-    d = smooth(None)
+    # count, then the sums of u (the scatter adds the negated argument: the rendering's backward field)
+    acc, _ = scatter_displacements(ijk - lo, box, model.positions_mm - positions_mm, (1, 1, 1))
+    sm = sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(sub.apply_to(sitk.GetImageFromArray(acc, isVector=True)), sigma_mm))
+    d = sm[..., 0]
     w = np.clip(d * (4.0 / max(float(d.max()), 1e-12)), 0.0, 1.0)
     w[w < 1e-3] = 0.0
-    scale = w / np.maximum(d, 1e-6)
     f = np.zeros(tuple(g.size[::-1]) + (3,), dtype=np.float32)
-    inner = f[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
-    for c in range(3):
-        inner[..., c] = smooth(u[:, c]) * scale
+    f[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]] = sm[..., 1:] * (w / np.maximum(d, 1e-6))[..., None]
     return g.apply_to(sitk.GetImageFromArray(f, isVector=True))
 
 
