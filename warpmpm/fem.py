@@ -121,7 +121,7 @@ def _amg_cg(K, b, points, nodal_dofs, free, rtol: float = 1e-10) -> np.ndarray:
     try:
         import pyamg
     except ImportError as exc:
-        raise InputError("a FEM reference this large needs pyamg (pip install pyamg, or .[bench]); "
+        raise InputError("a FEM reference this large needs pyamg (pip install pyamg); "
                          f"or use a smaller block / refinement (at most {DIRECT_MAX_DOFS} unknowns solve directly)") from exc
     from scipy.sparse.linalg import cg
 

@@ -200,10 +200,13 @@ def check_file_integrity(path: str) -> None:
         values = np.frombuffer(data, dtype=endian + ("f4" if datatype == 16 else "f8"), count=n, offset=vox_offset)
         bad = np.nonzero(~np.isfinite(values))[0]
         if len(bad):
-            nx, ny = max(int(dims[1]), 1), max(int(dims[2]), 1)
+            nx, ny, nz = (max(int(dims[a]), 1) if dims[0] >= a else 1 for a in (1, 2, 3))
             f = int(bad[0])
+            # a vector image (a displacement field) stores each component as a whole volume after the first
+            comp = f // (nx * ny * nz)
+            what = f", component {comp}" if comp else ""
             raise InputError(f"{path} holds {len(bad)} non-finite (NaN or Inf) voxels, the first at index (i, j, k) = "
-                             f"({f % nx}, {(f // nx) % ny}, {f // (nx * ny)}); fill or mask them before use")
+                             f"({f % nx}, {(f // nx) % ny}, {(f // (nx * ny)) % nz}){what}; fill or mask them before use")
 
 
 def read_volume(path: str | os.PathLike) -> sitk.Image:
