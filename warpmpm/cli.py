@@ -43,7 +43,9 @@ def _case_options() -> argparse.ArgumentParser:
                    help="in-plane particle sampling step (default 2 for the phantom in `run`, else 1)")
     g.add_argument("--lattice", default="auto", choices=["auto", "voxel", "isotropic"],
                    help="particle lattice: one per voxel, or isotropic inside the interpolated organs (auto: for thick slices)")
-    g.add_argument("--protocol", default="paper", choices=["paper", "contact"], help="ground-truth protocol")
+    g.add_argument("--protocol", default="paper", choices=["paper", "contact", "field"],
+                   help="ground-truth protocol: the seed's MPM-made truths (paper, contact) or a displacement field (field, "
+                   "set by --truth-field)")
     return p
 
 
@@ -77,6 +79,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     from .registration import BACKENDS
 
     p.add_argument("--phantom-seed", type=int, default=0, help="seed of the phantom (and of the GT perturbations)")
+    p.add_argument("--truth-field", default=None,
+                   help="the truth as a displacement field on the planning grid (mm, world LPS, the displacement of the tissue at "
+                   "each planning voxel): a frame of `warpmpm make-truth`, or your own (e.g. registered from a 4D-CT/MRI)")
     p.add_argument("--organs", default="psdl", help="organ combination: p, ps, pd, pl, psd, psl, pdl, psdl")
     p.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); "
                    "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
@@ -223,6 +228,24 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--format", default="dicom", choices=["dicom", "nifti"], help="frames as 2D MR DICOM (default) or NIfTI (one voxel thick)")
     c.add_argument("--out", required=True)
 
+    f = sub.add_parser("make-truth", help="a finite-element truth series: displacement fields of the abdomen under breathing and loads",
+                       description="Solve the elastic equilibrium of the abdomen around the organs (finite elements, an independent "
+                       "solver; surrounding tissue, the back held, the diaphragm side moved) frame by frame, and write "
+                       "OUT/fields/frame_NNNN.nii.gz (mm, world LPS, at each planning voxel) and OUT/truth.json.")
+    f.add_argument("--image", default=None, help="planning image (default: the built-in phantom)")
+    f.add_argument("--labels", default=None)
+    f.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"])
+    f.add_argument("--phantom-seed", type=int, default=0)
+    f.add_argument("--phantom-resolution", type=float, default=1.0)
+    f.add_argument("--load", default="breathing", help="comma-separated loads: breathing, drift, filling, push, peristalsis")
+    f.add_argument("--frames", type=int, default=16)
+    f.add_argument("--fps", type=float, default=4.0)
+    f.add_argument("--seed", type=int, default=0, help="seeds the materials, the breathing cycles and the loads")
+    f.add_argument("--cell-mm", type=float, default=5.0, help="edge of the finite elements (mm)")
+    f.add_argument("--margin-mm", type=float, default=30.0, help="tissue meshed around the organs (mm)")
+    f.add_argument("--interface-mm", type=float, default=3.0, help="sliding layer between organs (mm; 0: bonded)")
+    f.add_argument("--out", required=True, help="output folder (created; must not exist or be empty)")
+
     e = sub.add_parser("evaluate-track", help="score a track against a synthetic series' truth")
     e.add_argument("--track", required=True)
     e.add_argument("--truth", required=True)
@@ -280,9 +303,10 @@ def config_from_args(a):
     from .solver import SolverConfig
 
     step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
-    baselines = ("initial", "propagate") if a.no_volume_registration else ("initial", "propagate", "volume_registration")
+    baselines = ("initial", "propagate", "rigid") + (() if a.no_volume_registration else ("volume_registration",))
+    protocol = "field" if a.truth_field is not None else a.protocol
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
-                      organs=a.organs, slices=a.slices, protocol=a.protocol, deformation=a.deformation, targets=a.targets, drive=a.drive,
+                      organs=a.organs, slices=a.slices, protocol=protocol, truth_field=a.truth_field, deformation=a.deformation, targets=a.targets, drive=a.drive,
                       registration=a.registration, registration_passes=a.registration_passes,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
@@ -468,6 +492,30 @@ def cmd_make_cine(a) -> int:
     return 0
 
 
+def cmd_make_truth(a) -> int:
+    from .phantom import make_phantom
+    from .truth_fem import TruthConfig, make_truth, write_truth
+
+    cfg = TruthConfig(loads=tuple(x.strip() for x in a.load.split(",") if x.strip()), frames=a.frames, fps=a.fps, seed=a.seed,
+                      cell_mm=a.cell_mm, margin_mm=a.margin_mm, interface_mm=a.interface_mm)
+    out = os.path.abspath(a.out)
+    if os.path.exists(out) and (not os.path.isdir(out) or os.listdir(out)):
+        raise InputError(f"--out {a.out} exists and is not an empty folder; choose a new one")
+    if a.labels is None:
+        if a.image is not None:
+            raise InputError("--image needs --labels (without both, the built-in phantom is used)")
+        case, preset = make_phantom(seed=a.phantom_seed, resolution=a.phantom_resolution), "amos"
+    else:
+        case, preset = _planning_case(a.image, a.labels, a.preset), a.preset
+    series = make_truth(case, preset, cfg, progress=lambda t: print(t, flush=True))
+    write_truth(series, a.out)
+    m = series.record["mesh"]
+    print(f"wrote {a.out}/fields ({cfg.frames} frames) and {a.out}/truth.json: {m['n_elements']:,} elements of "
+          f"{max(m['cell_mm']):.1f} mm, {m['n_unknowns']:,} unknowns, largest residual "
+          f"{max(f['residual'] for f in series.record['frames']):.1e}")
+    return 0
+
+
 def cmd_evaluate_track(a) -> int:
     from .experiment.cine_series import evaluate_track
     from .experiment.io import write_json_atomic
@@ -489,7 +537,7 @@ def cmd_evaluate_track(a) -> int:
 
 
 COMMANDS = {"run": cmd_run, "sweep": cmd_sweep, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
-            "make-cine": cmd_make_cine, "evaluate-track": cmd_evaluate_track}
+            "make-cine": cmd_make_cine, "make-truth": cmd_make_truth, "evaluate-track": cmd_evaluate_track}
 
 
 def main(argv=None) -> int:

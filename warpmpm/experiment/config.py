@@ -18,12 +18,12 @@ from ..images import PRESETS, parse_organs
 from ..slices import parse_slices
 from ..solver import SolverConfig
 
-Protocol = Literal["paper", "contact"]
+Protocol = Literal["paper", "contact", "field"]
 TargetKind = Literal["affine", "gt", "gt-inplane", "registration", "registration-affine", "registration-bspline",
                      "registration-demons"]
 DriveMode = Literal["inplane", "pinned"]
 Lattice = Literal["auto", "voxel", "isotropic"]
-Baseline = Literal["initial", "propagate", "volume_registration"]
+Baseline = Literal["initial", "propagate", "rigid", "volume_registration"]
 
 PROTOCOLS: tuple[str, ...] = get_args(Protocol)
 TARGET_KINDS: tuple[str, ...] = get_args(TargetKind)
@@ -61,7 +61,11 @@ class CaseConfig:
     """Driving slices as ``axial:12,sagittal:40`` (voxel indices of the input volume), an ``auto`` mode,
     or None for the mid-pancreas axial slice."""
     protocol: Protocol = "paper"
-    """Ground-truth protocol: the paper's 8 slice affines, or contact-driven motion."""
+    """Ground-truth protocol: the paper's 8 slice affines or contact-driven motion (both simulated by the MPM: regression
+    tests of the seed's experiment), or ``field``: a displacement field given as ``truth_field`` (a finite-element truth
+    of ``warpmpm make-truth``, or one registered from a 4D scan)."""
+    truth_field: str | None = None
+    """The truth as a displacement field on the planning grid (:mod:`warpmpm.fields`); needs ``protocol="field"``."""
     deformation: int = 1
     """Paper deformation type 1..8; under ``contact`` it numbers the scenario (>= 1)."""
     targets: TargetKind = "affine"
@@ -99,7 +103,7 @@ class CaseConfig:
     wait_settled: bool = False
     """Run each estimate on until the whole model has settled, not only the driven slice
     (:class:`~warpmpm.driving.ConvergenceConfig`)."""
-    baselines: tuple[Baseline, ...] = ("initial", "propagate", "volume_registration")
+    baselines: tuple[Baseline, ...] = ("initial", "propagate", "rigid", "volume_registration")
     """Baselines scored beside the estimate."""
     exclude_driven: bool | None = None
     """Leave the driven particles out of the metrics; None: only with several driving slices."""
@@ -145,6 +149,11 @@ class CaseConfig:
             raise InputError(f"unknown --slices {self.slices!r}; use one of {', '.join(AUTO_MODES)}")
         if self.protocol not in PROTOCOLS:
             raise InputError(f"unknown protocol {self.protocol!r}; use {' or '.join(PROTOCOLS)}")
+        if (self.protocol == "field") != (self.truth_field is not None):
+            raise InputError("--truth-field and --protocol field go together: give the field (the protocol follows), "
+                             "or drop --protocol field")
+        if self.truth_field is not None and not os.path.exists(self.truth_field):
+            raise InputError(f"--truth-field file not found: {self.truth_field}")
         if not _is_int(self.deformation):
             raise InputError(f"deformation must be an integer, got {self.deformation!r}")
         if self.protocol == "paper" and self.deformation not in range(1, 9):

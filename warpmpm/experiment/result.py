@@ -21,6 +21,8 @@ class Scores:
         error_offslice_mm: mean error of the pancreas particles that no driving slice holds (what the
             estimate inferred, not what it was told), whatever ``excluded_driven`` says.
         info: method-specific values (a baseline's time, whether it fell back to the identity...).
+        organs: organ -> its scores (:func:`warpmpm.experiment.organs.organ_scores`: error, p95, on/off-plane split,
+            LR/AP/SI errors, distance to the pancreas for the organs at risk); written as ``organs`` in the JSON.
     """
 
     error_mm: float
@@ -30,6 +32,7 @@ class Scores:
     n: int
     error_offslice_mm: float = float("nan")
     info: dict = field(default_factory=dict)
+    organs: dict = field(default_factory=dict)
 
     @classmethod
     def of(cls, metrics: dict, error_offslice_mm: float = float("nan"), **info) -> "Scores":
@@ -37,8 +40,8 @@ class Scores:
                    info=dict(info))
 
     def to_json(self) -> dict:
-        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "info"}
-        return d | self.info
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("info", "organs")}
+        return d | self.info | ({"organs": self.organs} if self.organs else {})
 
 
 @dataclass(kw_only=True)

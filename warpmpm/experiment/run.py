@@ -18,6 +18,7 @@ from ..metrics import evaluate
 from ..recorder import NullRecorder, Recorder
 from ..slices import driven_indices
 from .baselines import propagate, volume_registration
+from .organs import baseline_positions, organ_scores
 from .case import PreparedCase, prepare_case
 from .config import CaseConfig
 from .result import EstimateScores, RunResult, Scores
@@ -54,9 +55,14 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
     def offslice_error(pos) -> float:
         return float(np.linalg.norm(pos[offslice] - gt_pos[offslice], axis=1).mean()) if offslice.any() else float("nan")
 
+    on_plane = np.zeros(model.n, dtype=bool)
+    on_plane[idx] = True
+
     def score(pos, **info) -> Scores:
         m = evaluate(pos[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step)
-        return Scores.of(m, offslice_error(pos), **info)
+        out = Scores.of(m, offslice_error(pos), **info)
+        out.organs = organ_scores(model, pos, gt_pos, on_plane)
+        return out
 
     results: dict[str, Scores] = {}
     if "initial" in cfg.baselines:
@@ -68,6 +74,17 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
             results["propagate_affine"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm))
     if "propagate" in cfg.baselines and tg.combined_mm is not None:  # every plane's motion, combined, copied to the body
         results["propagate_planes"] = score(tg.combined_mm)
+    if "rigid" in cfg.baselines:  # each seen organ's observed translation; organs on no plane from their neighbours
+        drive_axes = tg.drive.axes if cfg.targets != "gt" else np.tile(np.eye(3), (len(idx), 1, 1))
+        for name, pos in baseline_positions(model, idx, targets, drive_axes).items():
+            if name == "rigid":
+                results[name] = score(pos)
+            else:  # nearest / global: only the organs no plane crosses
+                unseen = [o for o in model.organs if not results["rigid"].organs[o]["seen"]]
+                nan = float("nan")
+                r = Scores(error_mm=nan, p95_mm=nan, max_mm=nan, dice=nan, n=0) if "pancreas" not in unseen else score(pos)
+                r.organs = organ_scores(model, pos, gt_pos, on_plane, only=unseen)
+                results[name] = r
     if "volume_registration" in cfg.baselines:
         pos, info = volume_registration(prep, gt, model)
         results["volume_registration"] = score(pos, **info)
@@ -90,7 +107,8 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         steps=res.steps, wall_s=res.wall_s, converged=res.converged, reason=res.reason,
         rms_residual_mm=res.final_rms_mm, rel_residual=res.final_rel_residual, ms_per_step=1e3 * res.wall_s / max(res.steps, 1),
         settled=res.settled, body_motion_mm=res.body_motion_mm, min_det_f=res.min_det_f,
-        linear_iterations=res.linear_iterations, finished_by=res.method)
+        linear_iterations=res.linear_iterations, finished_by=res.method,
+        organs=organ_scores(model, res.positions_mm, gt_pos, on_plane))
     out = RunResult(
         case=prep.case.name, organs=model.letters, slices=[str(prep.to_input(s)) for s in slices], protocol=cfg.protocol,
         deformation=cfg.deformation, targets=cfg.targets, device=str(est.mpm.device), n_particles=model.counts(),
@@ -168,7 +186,8 @@ def run_case(cfg: CaseConfig, recorder: Recorder | None = None, progress: Progre
             model = prep.model(cfg.organs)
             driven_indices(model, prep.resolve_slices(model, cfg.slices))
         progress.say(size_report(prep, cfg))
-        progress.say(f"ground truth ({cfg.protocol}, deformation {cfg.deformation}): simulating...")
+        progress.say(f"ground truth: reading the field {cfg.truth_field}..." if cfg.protocol == "field" else
+                     f"ground truth ({cfg.protocol}, deformation {cfg.deformation}): simulating...")
         gt = make_ground_truth(prep, cfg, callback=lambda est, step, rel, rms: progress.step("ground truth", step, rms))
         moving = float(gt.params.get("gt_body_motion_mm", float("nan")))
         unsettled = not gt.params.get("gt_settled", True) and math.isfinite(moving)

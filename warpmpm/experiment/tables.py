@@ -18,7 +18,7 @@ MULTI_NAMES = {"a": "axial only", "ac": "axial + coronal", "as": "axial + sagitt
 def format_table(out: RunResult) -> str:
     """The run's table: each baseline and the estimate with error, p95, Dice (and steps, time)."""
     rows = ["| method | error mm | off-slice error mm | p95 mm | Dice | steps | wall s |", "|---|---|---|---|---|---|---|"]
-    for name in ("initial", "propagate", "propagate_affine", "propagate_planes", "volume_registration", "estimate"):
+    for name in ("initial", "propagate", "propagate_affine", "propagate_planes", "rigid", "volume_registration", "estimate"):
         r = out.results.get(name)
         if r is None:
             continue
@@ -31,8 +31,9 @@ def format_table(out: RunResult) -> str:
         elif j.get("uncertain"):
             label += f" (uncertain: two registrations disagree by {j['disagreement_mm']:.1f} mm)"
         rows.append(f"| {label} | {r.error_mm:.2f} | {r.error_offslice_mm:.2f} | {r.p95_mm:.2f} | {r.dice:.3f} | {steps} | {wall} |")
-    head = (f"case {out.case}, organs {out.organs}, slices {','.join(out.slices)}, protocol {out.protocol}"
-            f" (deformation {out.deformation}), targets {out.targets} (drive {out.drive}), device {out.device}, "
+    truth = (f"protocol field ({out.gt.get('made_by', '')}: {out.gt.get('truth_field', '')})" if out.protocol == "field" else
+             f"protocol {out.protocol} (deformation {out.deformation})")
+    head = (f"case {out.case}, organs {out.organs}, slices {','.join(out.slices)}, {truth}, targets {out.targets} (drive {out.drive}), device {out.device}, "
             f"particles {sum(out.n_particles.values())} ({out.n_particles}), driven {out.n_driven}")
     est = out.estimate
     state = "converged" if est.converged else ("STALLED" if est.reason == "stalled" else "NOT converged")
@@ -52,7 +53,10 @@ def format_table(out: RunResult) -> str:
     if out.registration is not None:
         r = out.registration
         tail += f"\nregistration: in-plane error of the slice's pancreas particles {r['error_mm']:.2f} mm, {r['wall_s'] * 1e3:.1f} ms per slice"
-    return head + "\n" + "\n".join(rows) + "\n" + tail
+    from .organs import format_organ_table
+
+    organs = "\n\nevery organ (pancreas: the target; stomach, duodenum, left kidney: organs at risk):\n" + format_organ_table(out.results)
+    return head + "\n" + "\n".join(rows) + "\n" + tail + organs
 
 
 def summarize(rows: list[dict]) -> str:

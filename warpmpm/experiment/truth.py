@@ -3,6 +3,8 @@ and the GT of a sub-combination."""
 
 from __future__ import annotations
 
+import os
+import time
 import zlib
 from dataclasses import replace
 
@@ -21,6 +23,10 @@ MAX_OUTSIDE_SHARE = 0.2
 def make_ground_truth(prep: PreparedCase, cfg: CaseConfig, callback=None) -> GroundTruth:
     """Simulate the GT of ``cfg.protocol`` on the case's full model (every organ present); ``callback`` is
     called every step of the simulation (progress)."""
+    if cfg.protocol == "field":
+        gt = field_ground_truth(prep, cfg.truth_field)
+        check_inside_imaged_volume(prep, gt)
+        return gt
     solver = cfg.solver if cfg.gt_contact is None else replace(cfg.solver, contact=cfg.gt_contact)
     if cfg.protocol == "paper":
         return paper_ground_truth(prep.full_model, cfg.deformation, literal=cfg.literal, perturb=cfg.perturb,
@@ -30,6 +36,37 @@ def make_ground_truth(prep: PreparedCase, cfg: CaseConfig, callback=None) -> Gro
                               device=cfg.device, callback=callback, wait_settled=cfg.gt_wait_settled,
                               max_steps=cfg.max_steps if cfg.gt_wait_settled else 4000)
     check_inside_imaged_volume(prep, gt)
+    return gt
+
+
+def field_ground_truth(prep: PreparedCase, path: str) -> GroundTruth:
+    """The truth of a displacement field on the planning grid (:mod:`warpmpm.fields`): every particle moved by the
+    field at its planning position; the captured volume for the registration targets is the planning image warped
+    by the field (made once, kept in ``gt.cache``)."""
+    from ..fields import read_field, sample_field, warp_volume
+
+    geo = prep.input_geometry
+    ox, oy, oz = prep.offset
+    nz, ny, nx = prep.case.labels.shape
+    organs = np.zeros(tuple(geo.size[::-1]), bool)
+    organs[oz:oz + nz, oy:oy + ny, ox:ox + nx] = np.isin(prep.case.labels, [prep.case.label_map[o] for o in prep.full_model.organs])
+    t0 = time.perf_counter()
+    f = read_field(path, geo, organs)
+    model = prep.full_model
+    u = sample_field(f, geo, model.positions_mm)
+    gt = GroundTruth(model, model.positions_mm + u, "field",
+                     params={"truth_field": os.path.abspath(path), "made_by": "a displacement field (see the field's own record)",
+                             "pancreas_mean_mm": float(np.linalg.norm(u[model.organ_slice("pancreas")], axis=1).mean())})
+    crop = f[oz:oz + nz, oy:oy + ny, ox:ox + nx]
+    if prep.case.image is not None:
+        gt.cache["volumes"] = (prep.case, (prep.case.image, warp_volume(prep.case.image, crop, prep.case.geometry)))
+    gt.wall_s = time.perf_counter() - t0
+    record = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(path))), "truth.json")
+    if os.path.exists(record):  # a make-truth series: say who made it
+        import json
+
+        with open(record) as fh:
+            gt.params["made_by"] = json.load(fh).get("made_by", gt.params["made_by"])
     return gt
 
 
