@@ -226,6 +226,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--particle-step", type=int, default=1)
     c.add_argument("--pixel-mm", type=float, default=2.0, help="in-plane pixel size of the frames (mm; an MR-Linac cine: 1.5-2.5)")
     c.add_argument("--format", default="dicom", choices=["dicom", "nifti"], help="frames as 2D MR DICOM (default) or NIfTI (one voxel thick)")
+    c.add_argument("--truth", default=None, help="the truth as displacement fields: a `warpmpm make-truth` folder (its fields/ and "
+                   "fps) or a folder of frame_NNNN.nii.gz fields on the planning grid; default: breathing and a push simulated here")
     c.add_argument("--out", required=True)
 
     f = sub.add_parser("make-truth", help="a finite-element truth series: displacement fields of the abdomen under breathing and loads",
@@ -476,7 +478,22 @@ def cmd_make_cine(a) -> int:
     from .phantom import make_phantom
 
     planes = tuple(p.strip() for p in a.plane.split(",") if p.strip())
-    check_cine_parameters(planes, a.frames, a.fps, 4.0, a.thickness_mm, a.pixel_mm, a.format)  # before anything is written
+    fields, fps = None, a.fps
+    if a.truth is not None:
+        import glob
+        import json
+
+        folder = os.path.join(a.truth, "fields") if os.path.isdir(os.path.join(a.truth, "fields")) else a.truth
+        fields = sorted(glob.glob(os.path.join(folder, "frame_*.nii*")))
+        if not fields:
+            raise InputError(f"--truth {a.truth} holds no displacement field (frame_NNNN.nii.gz, or fields/frame_NNNN.nii.gz)")
+        record = os.path.join(a.truth, "truth.json")
+        if os.path.exists(record):
+            with open(record) as fh:
+                fps = float(json.load(fh)["config"]["fps"])
+        if a.labels is None and a.image is None:
+            raise InputError("--truth needs the planning case it was made on (--image and --labels): its fields are on that grid")
+    check_cine_parameters(planes, len(fields) if fields else a.frames, fps, 4.0, a.thickness_mm, a.pixel_mm, a.format)  # before anything is written
     if a.labels is None:  # the phantom: its planning image and labels go beside the series, for `warpmpm track`
         from .images import write_case
 
@@ -486,8 +503,8 @@ def cmd_make_cine(a) -> int:
         case = _planning_case(paths[1], paths[0], "amos")  # as the tracker will read it (float32 geometry)
     else:
         case = _planning_case(a.image, a.labels, a.preset)
-    make_cine(case, a.out, planes=planes, frames=a.frames, fps=a.fps, thickness_mm=a.thickness_mm, pixel_mm=a.pixel_mm, seed=a.seed,
-              particle_step=a.particle_step, fmt=a.format, progress=lambda t: print(t, flush=True))
+    make_cine(case, a.out, planes=planes, frames=a.frames, fps=fps, thickness_mm=a.thickness_mm, pixel_mm=a.pixel_mm, seed=a.seed,
+              particle_step=a.particle_step, fmt=a.format, truth_fields=fields, progress=lambda t: print(t, flush=True))
     print(f"wrote {a.out}/cine and {a.out}/truth")
     return 0
 
@@ -524,6 +541,10 @@ def cmd_evaluate_track(a) -> int:
     print("| method | error mm | p95 mm | Dice | centroid error mm |\n|---|---|---|---|---|")
     for name, r in ev["results"].items():
         print(f"| {name} | {r['error_mm']:.2f} | {r['p95_mm']:.2f} | {r['dice']:.3f} | {r['centroid_error_mm']:.2f} |")
+    print("\nevery organ, mean error mm over the frames (p95):\n| method | " + " | ".join(ev["results"]["estimate"]["organs"]) + " |\n|---|"
+          + "---|" * len(ev["results"]["estimate"]["organs"]))
+    for name, r in ev["results"].items():
+        print(f"| {name} | " + " | ".join(f"{s['error_mm']:.2f} ({s['p95_mm']:.2f})" for s in r["organs"].values()) + " |")
     print(f"latency: median {ev['latency_s']['median']:.2f} s, p95 {ev['latency_s']['p95']:.2f} s")
     if a.json:
         write_json_atomic(a.json, ev)

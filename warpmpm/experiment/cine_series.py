@@ -52,13 +52,22 @@ def check_cine_parameters(planes, frames: int, fps: float, period_s: float, thic
 
 def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8, fps: float = 4.0, period_s: float = 4.0,
               thickness_mm: float = 6.0, pixel_mm: float | None = 2.0, noise_sd: float = 0.02, push_mm: float = 4.0,
-              particle_step: int = 1, seed: int = 0, fmt: str = "dicom", progress=None) -> dict:
+              particle_step: int = 1, seed: int = 0, fmt: str = "dicom", truth_fields: list[str] | None = None,
+              progress=None) -> dict:
     """Write ``out_dir/cine`` (frames) and ``out_dir/truth`` (positions, label maps) for ``case``; returns the
     series' parameters (also in ``truth/series.json``). Frames cycle through ``planes``; each is averaged over
     ``thickness_mm`` (partial volume) and resampled to ``pixel_mm`` square pixels in plane (an MR-Linac's
     cine: 1.5-2.5 mm; None keeps the planning grid's). ``fmt``: ``dicom`` (default: 2D MR DICOM, 16-bit, with
     position, orientation, acquisition time, instance number and slice thickness) or ``nifti`` (one voxel
-    thick)."""
+    thick).
+
+    ``truth_fields``: the truth as displacement fields on the planning grid, one file a frame (:mod:`warpmpm.fields`,
+    e.g. ``warpmpm make-truth``'s ``fields/``): each frame's particles move by its field and the frame is the planning
+    image warped by it; ``frames`` is then the number of fields, and no motion is simulated."""
+    if truth_fields is not None:
+        frames = len(truth_fields)
+        if frames == 0:
+            raise InputError("--truth holds no field (frame_NNNN.nii.gz)")
     check_cine_parameters(planes, frames, fps, period_s, thickness_mm, pixel_mm, fmt)
     if case.image is None:
         raise InputError("a synthetic cine series needs the planning image")
@@ -80,6 +89,12 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
     os.makedirs(os.path.join(truth, "labels"), exist_ok=True)
     driven = np.nonzero(model.organ_index != model.organs.index("pancreas"))[0]
     all_truth = []
+    organ_mask = np.isin(case.labels, [case.label_map[o] for o in present])
+    if truth_fields is not None:  # every field checked before anything is written
+        from ..fields import read_field
+
+        for path in truth_fields:
+            read_field(path, g, organ_mask)
     for k in range(frames):
         t = k / fps
         phase = (1.0 - math.cos(2 * math.pi * t / period_s)) / 2.0
@@ -90,10 +105,17 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
             sel = model.organ_slice(o)
             target[sel] += amp * phase * np.array([0.0, ap, -si])  # exhale to inhale: inferior and anterior (LPS)
         target[model.organ_slice(pusher)] += push_mm * (k / max(frames - 1, 1)) * push_dir
-        _, res = simulate_gt(model, driven, target[driven], perturb=True, seed=seed + 7, solver_config=None, device="cpu")
-        pos = res.positions_mm
+        if truth_fields is None:
+            _, res = simulate_gt(model, driven, target[driven], perturb=True, seed=seed + 7, solver_config=None, device="cpu")
+            pos, how = res.positions_mm, f"truth in {res.steps} steps"
+            warped = warp_image(case, model, pos)
+        else:
+            from ..fields import read_field, sample_field, warp_volume
+
+            field = read_field(truth_fields[k], g)
+            pos, how = model.positions_mm + sample_field(field, g, model.positions_mm), f"truth {os.path.basename(truth_fields[k])}"
+            warped = warp_volume(case.image, field, g)
         all_truth.append(pos)
-        warped = warp_image(case, model, pos)
         orientation = planes[k % len(planes)]
         frame = _frame_image(warped, case, orientation, pan_c, thickness_mm, noise_sd * float(np.ptp(case.image)), rng, pixel_mm)
         if fmt == "nifti":
@@ -105,7 +127,7 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
         lab = particle_label_map(model, pos, {o: case.label_map[o] for o in model.organs})
         sitk.WriteImage(g.apply_to(sitk.GetImageFromArray(lab.astype(np.uint8))), os.path.join(truth, "labels", f"frame_{k:04d}.nii.gz"))
         if progress:
-            progress(f"frame {k} ({orientation}, t {t:.2f} s): truth in {res.steps} steps, pancreas moved "
+            progress(f"frame {k} ({orientation}, t {t:.2f} s): {how}, pancreas moved "
                      f"{np.linalg.norm(pos[model.organ_slice('pancreas')].mean(0) - pan_c):.2f} mm")
     np.savez_compressed(os.path.join(truth, "positions.npz"), planning_mm=model.positions_mm, organ_index=model.organ_index,
                         organs=np.asarray(model.organs), truth_mm=np.asarray(all_truth))
@@ -114,6 +136,9 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
               "noise_sd": noise_sd, "push_mm": push_mm, "pusher": pusher, "particle_step": particle_step, "seed": seed,
               "breathing_mm": BREATHING_MM, "cycle_amplitude": cycle_amp.tolist(), "materials": {
                   o: {"lam_pa": m.lam_pa, "mu_pa": m.mu_pa} for o, m in perturb_materials(model.materials, seed + 7).items()}}
+    if truth_fields is not None:  # the motion came from the fields, not from the breathing and push above
+        params = {k: v for k, v in params.items() if k not in ("push_mm", "pusher", "breathing_mm", "cycle_amplitude", "materials")}
+        params["truth_fields"] = [os.path.abspath(p) for p in truth_fields]
     with open(os.path.join(truth, "series.json"), "w") as f:
         json.dump(params, f, indent=1)
     return params
@@ -192,16 +217,41 @@ def _frame_image(volume: np.ndarray, case: Case, orientation: str, through_mm: n
     return out
 
 
+def _truth_from_fields(truth_dir: str, planning_mm: np.ndarray) -> dict | None:
+    """``{"truth_mm": (frames, N, 3)}`` from a folder of displacement fields (``frame_NNNN.nii.gz``, or a
+    ``make-truth`` folder's ``fields/``), each sampled at the planning positions; None when there are none."""
+    import glob
+
+    from ..fields import read_field, sample_field
+    from ..images import Geometry
+
+    folder = os.path.join(truth_dir, "fields") if os.path.isdir(os.path.join(truth_dir, "fields")) else truth_dir
+    paths = sorted(glob.glob(os.path.join(folder, "frame_*.nii*")))
+    if not paths:
+        return None
+    out = []
+    for p in paths:
+        g = Geometry.of(sitk.ReadImage(p))  # the field's own grid: the planning grid it was made on
+        out.append(planning_mm + sample_field(read_field(p, g), g, planning_mm))
+    return {"truth_mm": np.asarray(out), "planning_mm": planning_mm}
+
+
 def evaluate_track(track_dir: str, truth_dir: str) -> dict:
     """Per frame and overall: pancreas error (mean, p95, mm), Dice and centroid error of the estimate and of
-    ``propagate`` and ``initial``; latency median and p95 (s)."""
+    ``propagate`` and ``initial``; every organ's mean error, p95 and superior-inferior error (``organs``); latency
+    median and p95 (s). ``truth_dir``: a ``make-cine`` truth (``positions.npz``) or displacement fields (a
+    ``make-truth`` folder, or a folder of ``frame_NNNN.nii.gz`` on the planning grid)."""
     import csv
 
-    for p in (os.path.join(track_dir, "particles.npz"), os.path.join(truth_dir, "positions.npz")):
-        if not os.path.exists(p):
-            raise InputError(f"{p} not found")
+    if not os.path.exists(os.path.join(track_dir, "particles.npz")):
+        raise InputError(f"{os.path.join(track_dir, 'particles.npz')} not found")
     tr = np.load(os.path.join(track_dir, "particles.npz"))
-    gt = np.load(os.path.join(truth_dir, "positions.npz"))
+    if os.path.exists(os.path.join(truth_dir, "positions.npz")):
+        gt = np.load(os.path.join(truth_dir, "positions.npz"))
+    else:
+        gt = _truth_from_fields(truth_dir, tr["planning_mm"])
+        if gt is None:
+            raise InputError(f"{truth_dir} holds neither positions.npz (make-cine) nor displacement fields (frame_NNNN.nii.gz)")
     if tr["planning_mm"].shape != gt["planning_mm"].shape or not np.allclose(tr["planning_mm"], gt["planning_mm"], rtol=0, atol=0.01):
         raise InputError("the track and the truth were built on different particle models (organs or particle step differ)")
     n = min(len(tr["estimate_mm"]), len(gt["truth_mm"]))
@@ -226,6 +276,15 @@ def evaluate_track(track_dir: str, truth_dir: str) -> dict:
         frames.append(rec)
     results = {name: {key: float(np.mean([f[name][key] for f in frames])) for key in ("error_mm", "p95_mm", "dice", "centroid_error_mm")}
                for name in methods}
+    organs = list(tr["organs"])
+    for name, arr in methods.items():  # every organ, averaged over the frames
+        results[name]["organs"] = {}
+        for i, o in enumerate(organs):
+            sel = tr["organ_index"] == i
+            err = np.stack([arr[k][sel] - gt["truth_mm"][k][sel] for k in range(n)])  # (frames, n, 3)
+            d = np.linalg.norm(err, axis=2)
+            results[name]["organs"][str(o)] = {"error_mm": float(d.mean()), "p95_mm": float(np.mean(np.percentile(d, 95, axis=1))),
+                                               "si_mm": float(np.abs(err[..., 2]).mean())}
     lat = np.array([f["latency_s"] for f in frames[1:]] or [frames[0]["latency_s"]])
     return {"results": results, "latency_s": {"median": float(np.median(lat)), "p95": float(np.percentile(lat, 95))}, "frames": frames}
 
