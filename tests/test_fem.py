@@ -109,9 +109,11 @@ def test_adaptive_damping_settles_a_rotated_block_in_a_fraction_of_the_steps():
 
 def test_settled_mode_does_not_drift_on_a_scaled_slice():
     """A 32 mm block whose middle slice is scaled 1.05, run on past settling (2,000 steps) in the settled mode
-    (adaptive damping, PD drive). Measured: 11.7 % off the FEM at step 500 and 11.6 % at step 2,000; with the
-    PID drive it replaced, 16.1 % growing to 16.7 % (the integral pushes the driven layer onto targets the
-    grid reaches only by stretching its neighbours, and the body creeps for as long as it runs)."""
+    (adaptive damping, PD drive). Measured: 22.5 % off the FEM at step 500 and at step 2,000; with the PID drive it
+    replaced, 42.4 % growing to 45.3 % (the integral pushes the driven layer onto targets the grid reaches only by
+    stretching its neighbours, and the body creeps for as long as it runs). Against the fully integrated (locking)
+    FEM used before 2026-12-03 the same runs read 11.7 % and 16.1-16.7 %: a volume change of the nearly
+    incompressible pancreas (lambda / mu = 49) is where the locking reference was too stiff."""
     m, sl, tg, rel_error = _block_scene((16, 16, 17), 8, InPlaneAffine(np.eye(2) * 1.05))
     err = {}
     for name, ki in (("pd", None), ("pid", 0.02)):
@@ -127,5 +129,5 @@ def test_settled_mode_does_not_drift_on_a_scaled_slice():
         with pytest.warns(RuntimeWarning, match="did not converge"):
             est.estimate(tg)
         err[name] = rec
-    assert err["pd"][2000] < 0.13 and abs(err["pd"][2000] - err["pd"][500]) < 0.003, err
+    assert err["pd"][2000] < 0.24 and abs(err["pd"][2000] - err["pd"][500]) < 0.003, err
     assert err["pid"][2000] > err["pid"][500] + 0.004, err  # what the PD drive removed

@@ -59,7 +59,9 @@ def fem_displacement_mm(model: ParticleModel, driven: np.ndarray, targets_mm: np
     node_f = np.rint(mesh.p.T / (sp / r)).astype(int)  # fine lattice index of every mesh node
     element = ElementVector(ElementHex1())
     full = Basis(mesh, element, intorder=3)
-    reduced = Basis(mesh, element, intorder=1)
+    # scikit-fem's hexahedral rules never have fewer than 2x2x2 points (intorder 0..3 all give 8): the one-point rule
+    # at the reference cube's centre is given explicitly (before 2026-12-03 ``intorder=1`` integrated it fully)
+    reduced = Basis(mesh, element, quadrature=(np.array([[0.5], [0.5], [0.5]]), np.array([1.0])))
     lam_p, mu_p = model.per_particle("lam_pa"), model.per_particle("mu_pa")
     # each element takes the mean Lame parameters of the eight particles of the particle element it lies in
     centre_f = node_f[mesh.t].mean(0)  # (n_elements, 3), fine lattice units
