@@ -48,7 +48,7 @@ def check_name(name: str) -> str:
     return name
 
 
-def save(name: str, data) -> str:
+def save(name: str, data, quiet: bool = False) -> str:
     """Write ``data`` (JSON-able; numpy values are converted) with the run's context; returns the path."""
     check_name(name)
     os.makedirs(RESULTS, exist_ok=True)
@@ -67,5 +67,6 @@ def save(name: str, data) -> str:
     with open(tmp, "w") as f:
         json.dump(doc, f, indent=1, default=default)
     os.replace(tmp, path)
-    print(f"raw numbers: {os.path.relpath(path)}")
+    if not quiet:
+        print(f"raw numbers: {os.path.relpath(path)}")
     return path

@@ -19,7 +19,8 @@ QS = SolverConfig(device="cpu", method="quasistatic")
 #: measured on this machine (cpu-2c), the tests' tolerances are twice these
 MEASURED_ROT = 0.025  # quasi-static against the FEM, rotated slice, 10x10x10 block (explicit settled mode: 0.032)
 MEASURED_GAP = 0.037  # quasi-static against the explicit settled mode, scaled slice, 10x10x11 block
-MEASURED_FEM = 0.26  # either solver against the FEM there (0.264 quasi-static, 0.259 explicit: a coarse 3-cell-thick block)
+MEASURED_FEM = 0.38  # either solver against the FEM there (0.363 quasi-static, 0.394 explicit: a coarse 3-cell-thick block;
+#                     0.264 / 0.259 against the fully integrated, locking FEM used before 2026-12-03)
 ROTATION = InPlaneAffine([[math.cos(A3), -math.sin(A3)], [math.sin(A3), math.cos(A3)]])
 
 
@@ -49,7 +50,7 @@ def test_quasistatic_agrees_with_the_explicit_settled_mode_on_a_scaled_slice():
     u_qs, u_ex = qs.positions_mm - m.positions_mm, ex.positions_mm - m.positions_mm
     gap = np.linalg.norm(u_qs - u_ex) / np.linalg.norm(u_ex)
     assert gap < 2 * MEASURED_GAP < MEASURED_FEM / 3
-    assert abs(rel_error(qs.positions_mm) - rel_error(ex.positions_mm)) < 0.02
+    assert abs(rel_error(qs.positions_mm) - rel_error(ex.positions_mm)) < 0.1 * MEASURED_FEM
 
 
 def test_a_translated_slice_moves_a_free_block_rigidly():
