@@ -203,7 +203,7 @@ def test_make_truth_series_and_its_record(tmp_path):
     write_truth(s, str(out))
     rec = json.loads((out / "truth.json").read_text())
     assert len(list((out / "fields").iterdir())) == 6 and rec["mesh"]["n_elements"] > 100
-    with pytest.raises(InputError, match="not an empty folder"):
+    with pytest.raises(InputError, match="already holds files"):
         write_truth(s, str(out))
 
 

@@ -516,8 +516,10 @@ def cmd_make_truth(a) -> int:
     cfg = TruthConfig(loads=tuple(x.strip() for x in a.load.split(",") if x.strip()), frames=a.frames, fps=a.fps, seed=a.seed,
                       cell_mm=a.cell_mm, margin_mm=a.margin_mm, interface_mm=a.interface_mm)
     out = os.path.abspath(a.out)
-    if os.path.exists(out) and (not os.path.isdir(out) or os.listdir(out)):
-        raise InputError(f"--out {a.out} exists and is not an empty folder; choose a new one")
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise InputError(f"--out {a.out} is a file; name a new folder")
+    if os.path.isdir(out) and os.listdir(out):
+        raise InputError(f"--out {a.out} already holds files; name a new or empty folder (a truth is never mixed with another)")
     if a.labels is None:
         if a.image is not None:
             raise InputError("--image needs --labels (without both, the built-in phantom is used)")

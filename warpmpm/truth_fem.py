@@ -823,8 +823,10 @@ def write_truth(series: TruthSeries, out_dir: str) -> None:
     from .fields import write_field
 
     out_dir = os.path.abspath(out_dir)
-    if os.path.exists(out_dir) and (not os.path.isdir(out_dir) or os.listdir(out_dir)):
-        raise InputError(f"--out {out_dir} exists and is not an empty folder; choose a new one")
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise InputError(f"--out {out_dir} is a file; name a new folder")
+    if os.path.isdir(out_dir) and os.listdir(out_dir):
+        raise InputError(f"--out {out_dir} already holds files; name a new or empty folder (a truth is never mixed with another)")
     parent = os.path.dirname(out_dir)
     os.makedirs(parent, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix=".truth-", dir=parent)
