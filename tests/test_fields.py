@@ -199,3 +199,25 @@ def test_a_cine_series_from_finite_element_fields_tracked_and_evaluated(tmp_path
     with pytest.raises(SystemExit):
         main(["make-cine", "--truth", str(truth), "--out", str(tmp_path / "x"), "--frames"])
     assert main(["make-cine", "--truth", str(truth), "--out", str(tmp_path / "y")]) == 2  # no planning case given
+
+
+def test_a_field_made_outside_the_project_is_the_truth(tmp_path):
+    """A smooth B-spline deformation made by ITK (SimpleITK's TransformToDisplacementField, d(x) = T(x) - x) read as
+    the truth: every particle's truth is T of its planning position, to the field's trilinear interpolation."""
+    from warpmpm.experiment.case import prepare_case
+    from warpmpm.experiment.truth import field_ground_truth
+
+    case = make_phantom(resolution=3.0)
+    ref = case.labels_image()
+    tx = sitk.BSplineTransformInitializer(ref, [3, 3, 3])
+    rng = np.random.default_rng(1)
+    tx.SetParameters(rng.uniform(-4.0, 4.0, len(tx.GetParameters())).tolist())
+    f = sitk.TransformToDisplacementField(tx, sitk.sitkVectorFloat64, ref.GetSize(), ref.GetOrigin(), ref.GetSpacing(), ref.GetDirection())
+    p = str(tmp_path / "itk.nii.gz")
+    sitk.WriteImage(sitk.Cast(f, sitk.sitkVectorFloat32), p)
+    prep = prepare_case(CaseConfig(phantom_resolution=3.0, protocol="field", truth_field=p))
+    gt = field_ground_truth(prep, p)
+    x = prep.full_model.positions_mm
+    expected = np.array([tx.TransformPoint(tuple(map(float, q))) for q in x])
+    assert np.abs(expected - x).max() > 1.0  # it does move
+    assert np.abs(gt.positions_mm - expected).max() < 0.05

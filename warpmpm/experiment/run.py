@@ -191,7 +191,8 @@ def run_case(cfg: CaseConfig, recorder: Recorder | None = None, progress: Progre
         gt = make_ground_truth(prep, cfg, callback=lambda est, step, rel, rms: progress.step("ground truth", step, rms))
         moving = float(gt.params.get("gt_body_motion_mm", float("nan")))
         unsettled = not gt.params.get("gt_settled", True) and math.isfinite(moving)
-        progress.done(f"ground truth: {gt.steps} steps in {gt.wall_s:.1f} s" + (
+        progress.done((f"ground truth: the field read and the planning image warped by it in {gt.wall_s:.1f} s"
+                       if cfg.protocol == "field" else f"ground truth: {gt.steps} steps in {gt.wall_s:.1f} s") + (
             f" (its body still moved {moving:.2f} mm per 100 steps when it stopped: a transient, not an equilibrium)" if unsettled else ""))
         out = run_prepared(prep, gt, cfg, recorder, progress)
         out.total_wall_s = time.perf_counter() - t0
