@@ -317,9 +317,10 @@ class BoxMesh:
         h_mm: cell edges along i, j, k (mm).
         keep: (n_k, n_j, n_i) bool, tissue cells.
         tissue: (n_k, n_j, n_i) int8 majority tissue code (:data:`TISSUES`).
+        sample_mm: spacing of the points that give a cell its tissue (mm).
         mu_pa, lam_pa: (n_k, n_j, n_i) cell moduli (Pa).
         fractions: tissue -> (n_k, n_j, n_i) share of the cell's sample points in that tissue.
-        points: (n_cells, S, 3) sample points of every cell, local mm; point_tissue (n_cells, S) their tissue codes.
+        point_tissue: (n_cells, S) tissue codes of every cell's sample points (their positions: :meth:`sample_local_mm`).
         materials: the drawn material of every tissue (``mu_pa``, ``nu``, ``lam_pa``) and the interface ratio.
     """
 
@@ -334,6 +335,7 @@ class BoxMesh:
     fractions: dict
     point_tissue: np.ndarray
     materials: dict
+    sample_mm: float = 1.5
 
     @property
     def node_shape(self) -> tuple[int, int, int]:
@@ -360,7 +362,7 @@ class BoxMesh:
 
     def sample_local_mm(self, cells: np.ndarray | None = None) -> np.ndarray:
         """(n_cells, S, 3) local positions of every cell's sample points (cells in C order of (k, j, i))."""
-        s = _samples_per_edge(self.h_mm, self.geometry)
+        s = _samples_per_edge(self.h_mm, self.sample_mm)
         off = (np.stack(np.meshgrid(*[(np.arange(n) + 0.5) / n for n in s], indexing="ij"), -1).reshape(-1, 3)) * self.h_mm
         nk, nj, ni = self.keep.shape
         kk, jj, ii = np.meshgrid(np.arange(nk), np.arange(nj), np.arange(ni), indexing="ij")
@@ -370,7 +372,7 @@ class BoxMesh:
         return base[:, None, :] + off[None, :, :]
 
 
-def _samples_per_edge(h_mm, geometry: Geometry, sample_mm: float = 1.5) -> np.ndarray:
+def _samples_per_edge(h_mm, sample_mm: float) -> np.ndarray:
     return np.maximum(1, np.ceil(np.asarray(h_mm) / sample_mm).astype(int))
 
 
@@ -447,9 +449,8 @@ def build_abdomen_mesh(case: Case, preset: str | None, cfg: TruthConfig, materia
     materials = materials or draw_materials(cfg.seed, cfg.interface_ratio)
 
     mesh = BoxMesh(g, lo, tuple(int(v) for v in n_cells), h, np.zeros(tuple(n_cells[::-1]), bool),
-                   np.zeros(tuple(n_cells[::-1]), np.int8), None, None, {}, None, materials)
+                   np.zeros(tuple(n_cells[::-1]), np.int8), None, None, {}, None, materials, cfg.sample_mm)
     # sample points -> voxel -> tissue; the sliding layer from each organ's distance map
-    s = _samples_per_edge(h, g, cfg.sample_mm)
     pts = mesh.sample_local_mm()  # (n_cells, S, 3)
     n_cells_total, S = pts.shape[0], pts.shape[1]
     vox = np.rint(lo + pts.reshape(-1, 3) / sp).astype(np.int64)
