@@ -197,6 +197,8 @@ def test_make_truth_series_and_its_record(tmp_path):
     assert np.abs(s.field(0)).max() == 0.0
     assert max(f["residual"] for f in s.record["frames"]) < 1e-6
     assert s.record["frames"][3]["pancreas_mean_mm"] > 1.0
+    push = [f["load_state"]["push_eigenstrain"] for f in s.record["frames"]]
+    assert push[0] == 0.0 and max(push) == pytest.approx(s.record["loads"]["push"]["eigenstrain"], rel=0.1)
     for t in ("pancreas", "stomach", "soft_tissue"):
         assert s.record["materials"][t]["source"]
     out = tmp_path / "truth"

@@ -618,6 +618,24 @@ def cell_eigenstrain(mesh: BoxMesh, loads: dict, t: float) -> np.ndarray:
     return e.reshape(shape)
 
 
+def load_state(loads: dict, t: float) -> dict:
+    """What each aperiodic load amounts to at time ``t`` (for a frame's record): the stomach's volume gain, the push's
+    eigenstrain at its centre, the peristaltic band's position along the duodenum's axis (mm from its start)."""
+    out = {}
+    if "filling" in loads:
+        L = loads["filling"]
+        out["filling_volume_gain"] = L["volume_gain"] * (min(t / L["duration_s"], 1.0) if L["duration_s"] > 0 else 1.0)
+    if "push" in loads:
+        L = loads["push"]
+        out["push_eigenstrain"] = L["eigenstrain"] * (math.sin(math.pi * min(t / L["duration_s"], 1.0)) ** 2 if L["duration_s"] > 0 else 1.0)
+    if "peristalsis" in loads:
+        L = loads["peristalsis"]
+        out["peristalsis_band_mm"] = L["speed_mm_s"] * t
+    if "drift" in loads:
+        out["drift_mm"] = loads["drift"]["rate_mm_s"] * t
+    return out
+
+
 def diaphragm_displacement(loads: dict, t: float) -> tuple[float, float]:
     """(inferior, anterior) displacement (mm) of the diaphragm side at time ``t``: breathing plus drift."""
     inf, ant = 0.0, 0.0
@@ -791,6 +809,7 @@ def make_truth(case: Case, preset: str | None, cfg: TruthConfig, progress=None) 
         fields.append(f)
         d = np.linalg.norm(f[pan], axis=1)
         rec = {"frame": n, "time_s": t, "diaphragm_inferior_mm": inf, "diaphragm_anterior_mm": ant,
+               "load_state": load_state(loads, t),
                "max_eigenstrain": float(np.abs(eig).max()), "residual": info["residual"], "iterations": info["iterations"],
                "wall_s": info["wall_s"], "strain_p99_organs": model.strain_p99(u),
                "pancreas_mean_mm": float(d.mean()), "pancreas_max_mm": float(d.max()),
