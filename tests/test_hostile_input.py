@@ -483,13 +483,28 @@ def test_a_closed_stdout_stops_without_a_traceback(tmp_path):
     assert p.returncode == 141
 
 
-@pytest.mark.parametrize("args", [["--pixel-mm", "0"], ["--plane", "oblique"], ["--frames", "0"]])
+@pytest.mark.parametrize("args", [["--pixel-mm", "0"], ["--plane", "oblique"], ["--frames", "0"], ["--fps", "nan"],
+                                  ["--fps", "inf"], ["--thickness-mm", "nan"], ["--thickness-mm", "1e6"], ["--seed", "-1"],
+                                  ["--frames", "100000000"], ["--image", "x.nii.gz"]])
 def test_make_cine_refuses_bad_parameters_before_writing_anything(tmp_path, args):
     from warpmpm.cli import main
 
     out = tmp_path / "series"
     assert main(["make-cine", "--out", str(out), *args]) == 2
     assert not out.exists()  # not even the phantom's planning files
+
+
+def test_make_cine_refuses_an_out_that_is_a_file_or_holds_a_series(tmp_path, capsys):
+    from warpmpm.cli import main
+
+    f = tmp_path / "file"
+    f.write_text("x")
+    assert main(["make-cine", "--out", str(f)]) == 2 and "is a file" in capsys.readouterr().err
+    d = tmp_path / "old"
+    d.mkdir()
+    (d / "frame_0000.dcm").write_text("x")
+    assert main(["make-cine", "--out", str(d)]) == 2 and "already holds files" in capsys.readouterr().err
+    assert sorted(p.name for p in d.iterdir()) == ["frame_0000.dcm"]
 
 
 def test_a_raw_numbers_name_that_leaves_the_results_folder_is_refused(tmp_path, monkeypatch):

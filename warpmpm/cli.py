@@ -494,6 +494,14 @@ def cmd_make_cine(a) -> int:
         if a.labels is None and a.image is None:
             raise InputError("--truth needs the planning case it was made on (--image and --labels): its fields are on that grid")
     check_cine_parameters(planes, len(fields) if fields else a.frames, fps, 4.0, a.thickness_mm, a.pixel_mm, a.format)  # before anything is written
+    if a.seed < 0:
+        raise InputError(f"--seed must be a whole number >= 0, got {a.seed}")
+    if os.path.exists(a.out) and not os.path.isdir(a.out):
+        raise InputError(f"--out {a.out} is a file; name a new folder")
+    if os.path.isdir(a.out) and os.listdir(a.out):
+        raise InputError(f"--out {a.out} already holds files; name a new or empty folder (two series are never mixed)")
+    if a.image is not None and a.labels is None:
+        raise InputError("--image needs --labels (without both, the built-in phantom is used)")
     if a.labels is None:  # the phantom: its planning image and labels go beside the series, for `warpmpm track`
         from .images import write_case
 

@@ -30,6 +30,9 @@ from ..metrics import dice, voxelize
 from ..model import build_model
 from ..slices import orientation_image_axis
 
+#: Most frames a synthetic series may hold (10 minutes at 10 frames/s).
+MAX_FRAMES = 6000
+
 #: Breathing amplitudes (mm): superior-inferior, anterior-posterior, per organ.
 BREATHING_MM = {"pancreas": (10.0, 3.0), "stomach": (12.0, 4.0), "duodenum": (10.0, 3.0), "left_kidney": (14.0, 3.0)}
 
@@ -44,8 +47,12 @@ def check_cine_parameters(planes, frames: int, fps: float, period_s: float, thic
         raise InputError("no cine plane given; use sagittal, coronal or axial")
     if fmt not in ("nifti", "dicom"):
         raise InputError(f"unknown frame format {fmt!r}; use nifti or dicom")
-    if frames < 1 or fps <= 0 or period_s <= 0 or thickness_mm <= 0:
-        raise InputError("frames must be >= 1, fps, period and thickness > 0")
+    if not (isinstance(frames, int) and 1 <= frames <= MAX_FRAMES):
+        raise InputError(f"--frames must be a whole number in 1..{MAX_FRAMES}, got {frames!r}")
+    for name, v, lo, hi in (("--fps", fps, 0.1, 100.0), ("breathing period", period_s, 0.5, 60.0),
+                            ("--thickness-mm", thickness_mm, 0.5, 30.0)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and lo <= v <= hi):
+            raise InputError(f"{name} must be a finite number in {lo}..{hi}, got {v!r}")
     if pixel_mm is not None and not (math.isfinite(pixel_mm) and 0.2 <= pixel_mm <= 10.0):
         raise InputError(f"cine pixel size must be 0.2-10 mm, got {pixel_mm}")
 
