@@ -519,3 +519,28 @@ def test_a_raw_numbers_name_that_leaves_the_results_folder_is_refused(tmp_path, 
             raw.save(bad, {"n": 1})
     assert not (tmp_path / "results").exists() and not (tmp_path / "elsewhere.json").exists()
     assert os.path.basename(raw.save("fine_name-2.x", {"n": 1})) == "fine_name-2.x.json"
+
+
+def test_a_degenerate_registration_names_the_slice_the_user_gave(monkeypatch):
+    """A registration that degenerates is a failure of the run (SimulationError, exit 3), not bad input, and names the
+    input volume's slice index (the crop's differs)."""
+    import warpmpm.targets as targets_module
+    from warpmpm.errors import SimulationError
+    from warpmpm.experiment.config import CaseConfig
+    from warpmpm.experiment.run import run_case
+    from warpmpm.phantom import make_phantom
+
+    real = targets_module.register_slice_organs
+
+    def broken(*args, **kw):
+        whole, organs = real(*args, **kw)
+        whole.ok, whole.stop = False, "a test's degenerate transform"
+        return whole, organs
+
+    monkeypatch.setattr(targets_module, "register_slice_organs", broken)
+    case = make_phantom(resolution=3.0)
+    k = int(np.median(np.nonzero(case.labels == case.label_map["pancreas"])[0]))
+    cfg = CaseConfig(phantom_resolution=3.0, slices=f"axial:{k}", targets="registration", device="cpu", max_steps=20,
+                     baselines=("initial",))
+    with pytest.raises(SimulationError, match=rf"axial slice {k} gave a degenerate transform"):
+        run_case(cfg)

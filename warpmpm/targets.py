@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import SimpleITK as sitk
 
-from .errors import InputError, InputWarning
+from .errors import InputError, SimulationError, InputWarning
 from .images import Geometry
 from .model import ParticleModel
 from .rendering import particle_label_map, warp_array
@@ -155,7 +155,7 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
                          captured_volume: np.ndarray, labels: np.ndarray, geometry: Geometry, label_values: dict[str, int],
                          centre_mm: np.ndarray, *, truth_mm: np.ndarray | None = None, noise_sd: float = 0.0,
                          in_plane_factor: float = 1.0, method: str = "organs", positions_mm: np.ndarray | None = None,
-                         backend: str = "itk", passes: int = 1) -> tuple[DriveTargets, dict]:
+                         backend: str = "itk", passes: int = 1, slice_name=None) -> tuple[DriveTargets, dict]:
     """Targets from registering each driving slice of ``planning_volume`` with the same slice of
     ``captured_volume`` (both (z, y, x) on ``geometry``); ``positions_mm`` is the state at t-1 (default: planning).
 
@@ -189,7 +189,8 @@ def registration_targets(model: ParticleModel, slices: list[DrivingSlice], plann
         raise InputError(f"registration passes must be a whole number from 1 to {MAX_PASSES}, got {passes!r}")
     if method not in ("organs", "affine", "bspline", "demons"):
         raise InputError(f"unknown slice registration method {method!r}; use organs, affine, bspline or demons")
-    kw = dict(truth_mm=truth_mm, noise_sd=noise_sd, in_plane_factor=in_plane_factor, method=method, backend=backend)
+    kw = dict(truth_mm=truth_mm, noise_sd=noise_sd, in_plane_factor=in_plane_factor, method=method, backend=backend,
+              slice_name=slice_name or (lambda s: f"{s.orientation} slice {s.index}"))
     if passes > 1 and len(slices) > 1:
         if positions_mm is not None:
             raise InputError("registration passes > 1 render the planning volume from the planning positions; "
@@ -261,7 +262,7 @@ def _correlation(a: sitk.Image, b: sitk.Image, mask: sitk.Image) -> float:
 
 def _registration_pass(model: ParticleModel, slices: list[DrivingSlice], planning_volume: np.ndarray,
                        captured_volume: np.ndarray, labels: np.ndarray, geometry: Geometry, label_values: dict[str, int],
-                       centre_mm: np.ndarray, *, truth_mm, noise_sd, in_plane_factor, method, positions_mm, backend):
+                       centre_mm: np.ndarray, *, truth_mm, noise_sd, in_plane_factor, method, positions_mm, backend, slice_name):
     """One registration of every slice (:func:`registration_targets`); also returns every particle's position
     under the slices' motions, combined."""
     positions_mm = model.positions_mm if positions_mm is None else np.asarray(positions_mm, dtype=np.float64)
@@ -288,8 +289,8 @@ def _registration_pass(model: ParticleModel, slices: list[DrivingSlice], plannin
                for o in model.organs} if method in ("organs", "bspline", "demons") else {}
         whole, per_organ = register_slice_organs(stored, captured, centre_mm, mask, own, MIN_ORGAN_PIXELS, backend=backend)
         if not whole.ok:
-            raise InputError(f"registration of {s.orientation} slice {s.index} gave a degenerate transform ({whole.stop}); "
-                             "targets would be nonsense")
+            raise SimulationError(f"registration of {slice_name(s)} gave a degenerate transform ({whole.stop}); its targets "
+                                  "would be nonsense (a blank or featureless slice there? choose another plane)")
         affines.append(whole.affine)
         organ_affines[s] = {o: r.affine for o, r in per_organ.items()}
         walls.append(extra + whole.wall_s + sum(r.wall_s for r in per_organ.values()))

@@ -135,7 +135,8 @@ def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_po
     method = {"registration": "organs", "registration-affine": "affine", "registration-bspline": "bspline",
               "registration-demons": "demons"}[cfg.targets]
     drive, info = registration_targets(model, slices, planning, warped, case.labels, case.geometry, values, prep.centre_mm,
-                                       truth_mm=gt_pos, method=method, backend=cfg.registration, passes=cfg.registration_passes)
+                                       truth_mm=gt_pos, method=method, backend=cfg.registration, passes=cfg.registration_passes,
+                                       slice_name=lambda s: f"{s.orientation} slice {prep.to_input(s).index}")
     first = info.pop("first_pass", None)  # several passes: the baselines copy the planes' motion against planning
     affines, organ_affines, fields = info.pop("affines"), info.pop("organ_affines"), info.pop("fields")
     organ_fields = info.pop("organ_fields")
