@@ -1,7 +1,6 @@
 """Displacement fields as truths (:mod:`warpmpm.fields`), ``run --truth-field`` and the per-organ scores and baselines."""
 
 import json
-import warnings
 
 import numpy as np
 import pytest

@@ -1,7 +1,6 @@
 """The finite-element truth (:mod:`warpmpm.truth_fem`) against exact answers, and its anatomical boundary conditions."""
 
 import json
-import math
 
 import numpy as np
 import pytest

@@ -62,7 +62,7 @@ import os
 import shutil
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -700,7 +700,6 @@ class AbdomenModel:
         first[1:] = key[order][1:] != key[order][:-1]
         back = np.zeros(len(local), bool)
         back[order[first]] = True
-        col_back = np.empty(len(local))
         # each node's distance to its column's back (for the diaphragm's taper)
         uniq, inv = np.unique(key, return_inverse=True)
         back_coord = np.full(len(uniq), -np.inf)
