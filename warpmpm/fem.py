@@ -145,7 +145,8 @@ def _amg_cg(K, b, points, nodal_dofs, free, rtol: float = 1e-10) -> np.ndarray:
         col[comp == b_] = xyz[comp == b_, a]
         rbm[:, 3 + j] = col
     B = rbm[free]
-    ml = pyamg.smoothed_aggregation_solver(K.tocsr(), B=B, strength=("symmetric", {"theta": 0.0}), max_coarse=2000)
+    ml = pyamg.smoothed_aggregation_solver(K.tocsr(), B=B, strength=("symmetric", {"theta": 0.0}), max_coarse=2000,
+                                          coarse_solver="splu")  # the default dense pseudo-inverse of a ~10k coarse level takes minutes
     M = ml.aspreconditioner(cycle="V")
     x, info = cg(K, b, rtol=rtol, atol=0.0, maxiter=5000, M=M)
     if info != 0:
