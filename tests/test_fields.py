@@ -220,3 +220,26 @@ def test_a_field_made_outside_the_project_is_the_truth(tmp_path):
     expected = np.array([tx.TransformPoint(tuple(map(float, q))) for q in x])
     assert np.abs(expected - x).max() > 1.0  # it does move
     assert np.abs(gt.positions_mm - expected).max() < 0.05
+
+
+def test_evaluate_track_refuses_the_truth_of_another_scan(tmp_path):
+    """A track scored against fields on another grid (another scan's truth) is refused, not scored silently."""
+    from warpmpm.experiment.cine_series import evaluate_track
+
+    track = tmp_path / "track"
+    (track / "labels").mkdir(parents=True)
+    g = Geometry((6, 5, 4), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))
+    sitk.WriteImage(g.apply_to(sitk.GetImageFromArray(np.zeros((4, 5, 6), np.uint8))), str(track / "labels" / "frame_0000.nii.gz"))
+    x = np.zeros((3, 3))
+    np.savez(track / "particles.npz", planning_mm=x, organ_index=np.zeros(3, int), organs=np.array(["pancreas"]),
+             estimate_mm=x[None], propagate_mm=x[None])
+    (track / "track.csv").write_text("frame,latency_s\n0,0.1\n")
+    other = tmp_path / "truth"
+    other.mkdir()
+    write_field(np.zeros((4, 5, 7, 3), np.float32), Geometry((7, 5, 4), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0)), str(other / "frame_0000.nii.gz"))
+    with pytest.raises(InputError, match="not on the track's planning grid"):
+        evaluate_track(str(track), str(other))
+    write_field(np.zeros((4, 5, 6, 3), np.float32), g, str(other / "frame_0000.nii.gz"))
+    write_field(np.zeros((4, 5, 6, 3), np.float32), g, str(other / "frame_0001.nii.gz"))
+    with pytest.raises(InputError, match="1 frames and the truth 2"):
+        evaluate_track(str(track), str(other))

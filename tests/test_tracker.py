@@ -324,3 +324,22 @@ def test_a_displacement_field_of_the_wrong_particles_is_refused(tiny_case, tiny_
     bad[3, 1] = np.nan
     with pytest.raises(InputError, match="non-finite"):
         displacement_field(tiny_model, bad, tiny_case)
+
+
+def test_track_never_mixes_two_tracks_in_one_folder(series, tmp_path, capsys):
+    """--out that is a file, or a folder already holding a track, is refused before any work; --overwrite replaces
+    the folder whole (nothing of the old one is left)."""
+    args = ["track", "--image", os.path.join(series, "planning", "image.nii.gz"), "--labels",
+            os.path.join(series, "planning", "labels.nii.gz"), "--cine", os.path.join(series, "cine"), "--device", "cpu",
+            "--max-steps", "200"]
+    f = tmp_path / "file"
+    f.write_text("x")
+    assert main([*args, "--out", str(f)]) == 2 and "is a file" in capsys.readouterr().err
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "frame_0099.nii.gz").write_text("an earlier track's map")
+    assert main([*args, "--out", str(old)]) == 2 and "--overwrite" in capsys.readouterr().err
+    assert [p.name for p in old.iterdir()] == ["frame_0099.nii.gz"]
+    assert main([*args, "--out", str(old), "--overwrite"]) == 0
+    assert sorted(p.name for p in old.iterdir()) == ["labels", "particles.npz", "track.csv"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".track-")]  # no work folder left behind

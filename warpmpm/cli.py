@@ -210,6 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--no-predict", action="store_true",
                    help="start each frame from the last estimate, not from the frame's per-organ motion applied to every particle")
     k.add_argument("--rrd", default=None, help="also write a Rerun recording: the cine frames in their 3D planes beside the estimate")
+    k.add_argument("--overwrite", action="store_true", help="replace an --out folder that already holds a track (whole)")
 
     c = sub.add_parser("make-cine", help="a synthetic cine series with its 3D truth (for tests and benchmarks)",
                        description="Breathing plus a contact push, each frame's truth simulated with perturbed materials, frames "
@@ -450,9 +451,15 @@ def cmd_track(a) -> int:
 
     case = _planning_case(a.image, a.labels, a.preset)
     frames = read_cine(a.cine)
-    parent = os.path.dirname(os.path.abspath(a.out))
+    out = os.path.abspath(a.out)
+    parent = os.path.dirname(out)
     if not os.path.isdir(parent):
         raise InputError(f"output folder {parent} for --out does not exist")
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise InputError(f"--out {a.out} is a file; name a folder")
+    if os.path.isdir(out) and os.listdir(out) and not a.overwrite:
+        raise InputError(f"--out {a.out} already holds files (an earlier track?); name a new folder, or add --overwrite to "
+                         "replace it whole")
     cfg = TrackerConfig(organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
                         predict=not a.no_predict, wait_settled=a.wait_settled, registration=a.registration,
                         registration_linear_prior=a.linear_prior, reference=a.reference,
@@ -466,7 +473,19 @@ def cmd_track(a) -> int:
         from .viewer.recording import TrackRecorder
 
         recorder = TrackRecorder(check_output_path(a.rrd, "--rrd"), tracker.model)
-    rows = tracker.run(a.out, progress=lambda t: print(t, flush=True), recorder=recorder)
+    # written into a folder beside --out and moved into place at the end: an interrupted or failed track leaves no
+    # half-written --out, and --overwrite replaces the old track whole (two tracks are never mixed)
+    import shutil
+    import tempfile
+
+    work = tempfile.mkdtemp(prefix=".track-", dir=parent)
+    try:
+        rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder)
+        if os.path.isdir(out):
+            shutil.rmtree(out)
+        os.replace(work, out)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     import numpy as np
 
     lat = np.array([r["latency_s"] for r in rows[1:]] or [rows[0]["latency_s"]])

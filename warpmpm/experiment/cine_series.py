@@ -25,7 +25,7 @@ import SimpleITK as sitk
 
 from ..errors import InputError
 from ..groundtruth import perturb_materials, simulate_gt, warp_image
-from ..images import ORGANS, Case
+from ..images import ORGANS, Case, Geometry
 from ..metrics import dice, voxelize
 from ..model import build_model
 from ..slices import orientation_image_axis
@@ -224,13 +224,14 @@ def _frame_image(volume: np.ndarray, case: Case, orientation: str, through_mm: n
     return out
 
 
-def _truth_from_fields(truth_dir: str, planning_mm: np.ndarray) -> dict | None:
+def _truth_from_fields(truth_dir: str, planning_mm: np.ndarray, planning: "Geometry | None" = None) -> dict | None:
     """``{"truth_mm": (frames, N, 3)}`` from a folder of displacement fields (``frame_NNNN.nii.gz``, or a
-    ``make-truth`` folder's ``fields/``), each sampled at the planning positions; None when there are none."""
+    ``make-truth`` folder's ``fields/``), each sampled at the planning positions; None when there are none.
+    ``planning``: the track's planning grid; fields on another grid (another scan's truth) are refused."""
     import glob
 
     from ..fields import read_field, sample_field
-    from ..images import Geometry
+    from ..images import grid_differences
 
     folder = os.path.join(truth_dir, "fields") if os.path.isdir(os.path.join(truth_dir, "fields")) else truth_dir
     paths = sorted(glob.glob(os.path.join(folder, "frame_*.nii*")))
@@ -239,6 +240,10 @@ def _truth_from_fields(truth_dir: str, planning_mm: np.ndarray) -> dict | None:
     out = []
     for p in paths:
         g = Geometry.of(sitk.ReadImage(p))  # the field's own grid: the planning grid it was made on
+        diff = grid_differences(g, planning) if planning is not None else []
+        if diff:
+            raise InputError(f"the truth field {p} is not on the track's planning grid ({'; '.join(diff)}): the truth of "
+                             "another scan?")
         out.append(planning_mm + sample_field(read_field(p, g), g, planning_mm))
     return {"truth_mm": np.asarray(out), "planning_mm": planning_mm}
 
@@ -256,15 +261,19 @@ def evaluate_track(track_dir: str, truth_dir: str) -> dict:
     if os.path.exists(os.path.join(truth_dir, "positions.npz")):
         gt = np.load(os.path.join(truth_dir, "positions.npz"))
     else:
-        gt = _truth_from_fields(truth_dir, tr["planning_mm"])
+        lab0 = os.path.join(track_dir, "labels", "frame_0000.nii.gz")
+        gt = _truth_from_fields(truth_dir, tr["planning_mm"],
+                                Geometry.of(sitk.ReadImage(lab0)) if os.path.exists(lab0) else None)
         if gt is None:
             raise InputError(f"{truth_dir} holds neither positions.npz (make-cine) nor displacement fields (frame_NNNN.nii.gz)")
     if tr["planning_mm"].shape != gt["planning_mm"].shape or not np.allclose(tr["planning_mm"], gt["planning_mm"], rtol=0, atol=0.01):
         raise InputError("the track and the truth were built on different particle models (organs or particle step differ)")
-    n = min(len(tr["estimate_mm"]), len(gt["truth_mm"]))
+    if len(tr["estimate_mm"]) != len(gt["truth_mm"]):
+        raise InputError(f"the track holds {len(tr['estimate_mm'])} frames and the truth {len(gt['truth_mm'])}: the truth of "
+                         "another series?")
+    n = len(gt["truth_mm"])
     pan = tr["organ_index"] == list(tr["organs"]).index("pancreas")
     lab = sitk.ReadImage(os.path.join(track_dir, "labels", "frame_0000.nii.gz"))
-    from ..images import Geometry
 
     geom = Geometry.of(lab)
     with open(os.path.join(track_dir, "track.csv")) as f:
