@@ -88,7 +88,8 @@ def main(argv=None):
             out = f"{cine}_{cfg}"
             case_args = track_args or ["--image", os.path.join(cine, "planning", "image.nii.gz"), "--labels",
                                        os.path.join(cine, "planning", "labels.nii.gz"), "--particle-step", "2"]
-            ok = warpmpm("track", *case_args, "--cine", os.path.join(cine, "cine"), "--out", out, *CONFIGS[cfg], log=out + ".log")
+            ok = warpmpm("track", *case_args, "--cine", os.path.join(cine, "cine"), "--out", out, "--overwrite", *CONFIGS[cfg],
+                         log=out + ".log")  # re-measured each run: the earlier track is replaced whole
             ok = ok and warpmpm("evaluate-track", "--track", out, "--truth", os.path.join(cine, "truth"), "--json", out + ".json",
                                 log=out + ".log")
             if not ok:
