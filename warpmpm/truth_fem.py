@@ -361,7 +361,15 @@ class BoxMesh:
         return np.stack([(ii + a) + ni * ((jj + b) + nj * (kk + c)) for a, b, c in CORNERS], 1)
 
     def sample_local_mm(self, cells: np.ndarray | None = None) -> np.ndarray:
-        """(n_cells, S, 3) local positions of every cell's sample points (cells in C order of (k, j, i))."""
+        """(n_cells, S, 3) local positions of every cell's sample points (cells in C order of (k, j, i)); the whole
+        set is computed once and kept (the loads read it every frame)."""
+        if cells is None:
+            if getattr(self, "_samples", None) is None:
+                self._samples = self._sample_points(None)
+            return self._samples
+        return self._sample_points(cells)
+
+    def _sample_points(self, cells: np.ndarray | None) -> np.ndarray:
         s = _samples_per_edge(self.h_mm, self.sample_mm)
         off = (np.stack(np.meshgrid(*[(np.arange(n) + 0.5) / n for n in s], indexing="ij"), -1).reshape(-1, 3)) * self.h_mm
         nk, nj, ni = self.keep.shape
@@ -724,6 +732,7 @@ class AbdomenModel:
         self.bulk3_e = 3.0 * self.lam_e + 2.0 * self.mu_e  # 3 K
         self.build_s = time.perf_counter() - t0
         self._u = None
+        self._grid_map = None  # (fill indices of the unmeshed nodes, voxel coordinates on the node grid): field_on_grid's
         if not self.held.any():
             raise InputError("the finite-element truth holds nothing still (no posterior wall found)")
         if not self.diaphragm.any() and ("breathing" in cfg.loads or "drift" in cfg.loads):
@@ -773,21 +782,23 @@ class AbdomenModel:
 
         mesh = self.mesh
         shape = mesh.node_shape
-        grid = np.zeros((int(np.prod(shape)), 3))
-        grid[self.active] = u_nodes @ self.case.geometry.direction_matrix.T  # world components
-        have = np.zeros(int(np.prod(shape)), bool)
-        have[self.active] = True
-        have = have.reshape(shape)
-        grid = grid.reshape(shape + (3,))
-        if not have.all():
-            _, idx = ndimage.distance_transform_edt(~have, return_indices=True)
-            grid = grid[idx[0], idx[1], idx[2]]
         g = self.case.geometry
         nz, ny, nx = g.size[::-1]
-        k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
-        ijk = np.stack([i.ravel(), j.ravel(), k.ravel()], 1)
-        q = (ijk - mesh.lo_index) * np.asarray(g.spacing_mm) / mesh.h_mm  # node-grid coordinates (i, j, k)
-        coords = q[:, ::-1].T
+        if self._grid_map is None:  # the same for every frame: computed once
+            have = np.zeros(int(np.prod(shape)), bool)
+            have[self.active] = True
+            have = have.reshape(shape)
+            fill = None if have.all() else ndimage.distance_transform_edt(~have, return_indices=True)[1]
+            k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+            ijk = np.stack([i.ravel(), j.ravel(), k.ravel()], 1)
+            q = (ijk - mesh.lo_index) * np.asarray(g.spacing_mm) / mesh.h_mm  # node-grid coordinates (i, j, k)
+            self._grid_map = (fill, q[:, ::-1].T)
+        fill, coords = self._grid_map
+        grid = np.zeros((int(np.prod(shape)), 3))
+        grid[self.active] = u_nodes @ g.direction_matrix.T  # world components
+        grid = grid.reshape(shape + (3,))
+        if fill is not None:
+            grid = grid[fill[0], fill[1], fill[2]]
         out = np.stack([ndimage.map_coordinates(grid[..., c], coords, order=1, mode="nearest") for c in range(3)], -1)
         return out.reshape(nz, ny, nx, 3).astype(np.float32)
 

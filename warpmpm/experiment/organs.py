@@ -98,16 +98,27 @@ def baseline_positions(model: ParticleModel, idx: np.ndarray, targets_mm: np.nda
     return out
 
 
+def true_distances(model: ParticleModel, truth_mm: np.ndarray) -> dict[str, float]:
+    """Each organ at risk's smallest distance to the pancreas in the truth (mm): the same for every method of a run."""
+    if "pancreas" not in model.organs:
+        return {}
+    pan = model.organ_slice("pancreas")
+    return {o: _min_distance(truth_mm[pan], truth_mm[model.organ_slice(o)]) for o in model.organs if o in ORGANS_AT_RISK}
+
+
 def organ_scores(model: ParticleModel, positions_mm: np.ndarray, truth_mm: np.ndarray, on_plane: np.ndarray,
-                 only: list[str] | None = None) -> dict[str, dict]:
+                 only: list[str] | None = None, truth_distances: dict | None = None) -> dict[str, dict]:
     """Per organ: ``error_mm`` (mean over all its particles), ``p95_mm``, ``max_mm``, ``on_plane_mm`` and
     ``off_plane_mm`` (its particles on a driving plane and off every plane; NaN when there are none), the mean
     absolute error along ``lr_mm`` / ``ap_mm`` / ``si_mm`` (world x, y, z), ``seen`` (on a plane), ``n``; for each
     organ at risk ``distance_to_pancreas_mm`` (smallest distance, estimated), ``true_distance_to_pancreas_mm`` and
-    ``distance_error_mm`` (estimated minus true). ``only``: score just these organs."""
+    ``distance_error_mm`` (estimated minus true). ``only``: score just these organs. ``truth_distances``: the truth's
+    distances (:func:`true_distances`), when a run scores several methods against one truth."""
     err = positions_mm - truth_mm
     dist = np.linalg.norm(err, axis=1)
     pan = model.organ_slice("pancreas") if "pancreas" in model.organs else None
+    if truth_distances is None:
+        truth_distances = true_distances(model, truth_mm)
     out = {}
     for o in model.organs:
         if only is not None and o not in only:
@@ -123,7 +134,7 @@ def organ_scores(model: ParticleModel, positions_mm: np.ndarray, truth_mm: np.nd
              "si_mm": float(np.abs(err[sel, 2]).mean()), "seen": bool(np.count_nonzero(on) >= MIN_SEEN), "n": int(sel.sum())}
         if o in ORGANS_AT_RISK and pan is not None:
             est = _min_distance(positions_mm[pan], positions_mm[sel])
-            true = _min_distance(truth_mm[pan], truth_mm[sel])
+            true = truth_distances[o]
             r |= {"distance_to_pancreas_mm": est, "true_distance_to_pancreas_mm": true, "distance_error_mm": est - true}
         out[o] = r
     return out

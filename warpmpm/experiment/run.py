@@ -18,7 +18,7 @@ from ..metrics import evaluate
 from ..recorder import NullRecorder, Recorder
 from ..slices import driven_indices
 from .baselines import propagate, volume_registration
-from .organs import baseline_positions, organ_scores
+from .organs import baseline_positions, organ_scores, true_distances
 from .case import PreparedCase, prepare_case
 from .config import CaseConfig
 from .result import EstimateScores, RunResult, Scores
@@ -57,11 +57,12 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
 
     on_plane = np.zeros(model.n, dtype=bool)
     on_plane[idx] = True
+    truth_d = true_distances(model, gt_pos)  # the same for every method
 
     def score(pos, **info) -> Scores:
         m = evaluate(pos[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step)
         out = Scores.of(m, offslice_error(pos), **info)
-        out.organs = organ_scores(model, pos, gt_pos, on_plane)
+        out.organs = organ_scores(model, pos, gt_pos, on_plane, truth_distances=truth_d)
         return out
 
     results: dict[str, Scores] = {}
@@ -83,7 +84,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
                 unseen = [o for o in model.organs if not results["rigid"].organs[o]["seen"]]
                 nan = float("nan")
                 r = Scores(error_mm=nan, p95_mm=nan, max_mm=nan, dice=nan, n=0) if "pancreas" not in unseen else score(pos)
-                r.organs = organ_scores(model, pos, gt_pos, on_plane, only=unseen)
+                r.organs = organ_scores(model, pos, gt_pos, on_plane, only=unseen, truth_distances=truth_d)
                 results[name] = r
     if "volume_registration" in cfg.baselines:
         pos, info = volume_registration(prep, gt, model)
@@ -108,7 +109,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         rms_residual_mm=res.final_rms_mm, rel_residual=res.final_rel_residual, ms_per_step=1e3 * res.wall_s / max(res.steps, 1),
         settled=res.settled, body_motion_mm=res.body_motion_mm, min_det_f=res.min_det_f,
         linear_iterations=res.linear_iterations, finished_by=res.method,
-        organs=organ_scores(model, res.positions_mm, gt_pos, on_plane))
+        organs=organ_scores(model, res.positions_mm, gt_pos, on_plane, truth_distances=truth_d))
     out = RunResult(
         case=prep.case.name, organs=model.letters, slices=[str(prep.to_input(s)) for s in slices], protocol=cfg.protocol,
         deformation=cfg.deformation, targets=cfg.targets, device=str(est.mpm.device), n_particles=model.counts(),
