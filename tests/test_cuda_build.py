@@ -27,7 +27,7 @@ def kernel_modules() -> dict[str, list[str]]:
 
 def test_the_kernel_modules_are_found():
     mods = kernel_modules()
-    assert {"warpmpm.kernels", "warpmpm.driving", "warpmpm.quasistatic", "warpmpm.rigid_modes"} <= set(mods)
+    assert {"warpmpm.kernels", "warpmpm.driving", "warpmpm.quasistatic", "warpmpm.rigid_modes", "warpmpm.solvers.completion_kernels"} <= set(mods)
     assert {"p2g", "g2p", "grid_update"} <= set(mods["warpmpm.kernels"])
 
 
