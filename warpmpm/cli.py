@@ -307,7 +307,7 @@ def config_from_args(a):
     from .solver import SolverConfig
 
     step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
-    baselines = ("initial", "propagate", "rigid") + (() if a.no_volume_registration else ("volume_registration",))
+    baselines = ("initial", "propagate", "rigid", "completion") + (() if a.no_volume_registration else ("volume_registration",))
     protocol = "field" if a.truth_field is not None else a.protocol
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
                       organs=a.organs, slices=a.slices, protocol=protocol, truth_field=a.truth_field, deformation=a.deformation, targets=a.targets, drive=a.drive,

@@ -23,7 +23,7 @@ TargetKind = Literal["affine", "gt", "gt-inplane", "registration", "registration
                      "registration-demons"]
 DriveMode = Literal["inplane", "pinned"]
 Lattice = Literal["auto", "voxel", "isotropic"]
-Baseline = Literal["initial", "propagate", "rigid", "volume_registration"]
+Baseline = Literal["initial", "propagate", "rigid", "volume_registration", "completion"]
 
 PROTOCOLS: tuple[str, ...] = get_args(Protocol)
 TARGET_KINDS: tuple[str, ...] = get_args(TargetKind)
@@ -103,7 +103,7 @@ class CaseConfig:
     wait_settled: bool = False
     """Run each estimate on until the whole model has settled, not only the driven slice
     (:class:`~warpmpm.driving.ConvergenceConfig`)."""
-    baselines: tuple[Baseline, ...] = ("initial", "propagate", "rigid", "volume_registration")
+    baselines: tuple[Baseline, ...] = ("initial", "propagate", "rigid", "volume_registration", "completion")
     """Baselines scored beside the estimate."""
     exclude_driven: bool | None = None
     """Leave the driven particles out of the metrics; None: only with several driving slices."""

@@ -66,11 +66,13 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         return out
 
     results: dict[str, Scores] = {}
+    copy_mm = None
     if "initial" in cfg.baselines:
         results["initial"] = score(model.positions_mm)
     if "propagate" in cfg.baselines:  # the first slice's motion, as the estimate gets it (per organ when organ-aware)
-        results["propagate"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]),
-                                               tg.fields.get(slices[0]), tg.organ_fields.get(slices[0])))
+        copy_mm = propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]),
+                            tg.fields.get(slices[0]), tg.organ_fields.get(slices[0]))
+        results["propagate"] = score(copy_mm)
         if tg.organ_affines.get(slices[0]) or tg.fields.get(slices[0]) or tg.organ_fields.get(slices[0]):
             results["propagate_affine"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm))
     if "propagate" in cfg.baselines and tg.combined_mm is not None:  # every plane's motion, combined, copied to the body
@@ -86,6 +88,21 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
                 r = Scores(error_mm=nan, p95_mm=nan, max_mm=nan, dice=nan, n=0) if "pancreas" not in unseen else score(pos)
                 r.organs = organ_scores(model, pos, gt_pos, on_plane, only=unseen, truth_distances=truth_d)
                 results[name] = r
+    if "completion" in cfg.baselines:  # the whole-abdomen equilibrium completing what the planes see
+        from ..solvers.completion import CompletionModel, complete
+
+        if tg.combined_mm is not None:
+            copy_mm = tg.combined_mm
+        elif copy_mm is None:
+            copy_mm = propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]),
+                                tg.fields.get(slices[0]), tg.organ_fields.get(slices[0]))
+        t0 = time.perf_counter()
+        cm = CompletionModel(prep.case, cfg.preset, model, device=cfg.device)
+        c = complete(cm, idx, targets, tg.drive.axes if cfg.targets != "gt" else None, copy_mm)
+        results["completion"] = score(c.positions_mm, wall_s=time.perf_counter() - t0, converged=c.converged,
+                                      iterations=c.iterations, residual=c.residual, unknowns=c.info["unknowns"])
+        progress.say(f"completion: {c.info['unknowns']:,} unknowns, {c.iterations} CG iterations, "
+                     f"{'converged' if c.converged else 'NOT converged'} in {time.perf_counter() - t0:.1f} s")
     if "volume_registration" in cfg.baselines:
         pos, info = volume_registration(prep, gt, model)
         results["volume_registration"] = score(pos, **info)
