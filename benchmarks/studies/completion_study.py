@@ -1,0 +1,83 @@
+"""Study: the completion solve against the copies on finite-element truths (one case, one load, plane sets)."""
+
+import argparse
+import os
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import fem_truth  # noqa: E402
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--case", default="mr")
+    p.add_argument("--loads", default="breathing")
+    p.add_argument("--planes", default="sagittal+coronal,sagittal")
+    p.add_argument("--variants", default="default")
+    a = p.parse_args()
+    from warpmpm.experiment.baselines import propagate
+    from warpmpm.experiment.case import prepare_case
+    from warpmpm.experiment.config import CaseConfig
+    from warpmpm.experiment.organs import baseline_positions, organ_scores
+    from warpmpm.experiment.targets import run_targets
+    from warpmpm.experiment.truth import gt_for_model, make_ground_truth
+    from warpmpm.fields import write_field
+    from warpmpm.images import write_case
+    from warpmpm.solvers.completion import CompletionConfig, CompletionModel, complete
+    from warpmpm.truth_fem import TruthConfig, make_truth
+    import tempfile
+
+    case, preset, img, lab = fem_truth.load(a.case)
+    work = tempfile.mkdtemp()
+    if img is None:
+        img, lab = os.path.join(work, "i.nii.gz"), os.path.join(work, "l.nii.gz")
+        write_case(case, lab, img)
+    series = make_truth(case, preset, TruthConfig(loads=tuple(a.loads.split("+")), frames=16, seed=0))
+    n = fem_truth.peak_frame(series)
+    path = os.path.join(work, "t.nii.gz")
+    write_field(series.field(n), case.geometry, path)
+    variants = {"default": {}, "elastic_only": {"observed_first": False}, "no_off": {"off_plane_stiffness": 0.0},
+                "no_off_elastic": {"off_plane_stiffness": 0.0, "observed_first": False}, "cell6": {"cell_mm": 6.0},
+                "cell10": {"cell_mm": 10.0}, "off10": {"off_plane_stiffness": 10.0}, "off01": {"off_plane_stiffness": 0.1},
+                "paper": {"materials": "paper"}, "no_wall": {"hold_posterior_wall": False}, "off30": {"off_plane_stiffness": 30.0}, "off100": {"off_plane_stiffness": 100.0}, "trans": {"off_plane_motion": "translation"}, "u0": {"unseen_direction_stiffness": 0.0}, "u1e-2": {"unseen_direction_stiffness": 1e-2}, "u1e-4": {"unseen_direction_stiffness": 1e-4}, "trans10": {"off_plane_motion": "translation", "off_plane_stiffness": 10.0}, "off100_nowall": {"off_plane_stiffness": 100.0, "hold_posterior_wall": False}, "off30_nowall": {"off_plane_stiffness": 30.0, "hold_posterior_wall": False}, "sup": {"cut_faces": ("superior",)}, "sup_off10": {"cut_faces": ("superior",), "off_plane_stiffness": 10.0}, "both": {"cut_faces": ("superior", "inferior")},
+                "face100": {"face_stiffness": 100.0}, "face1": {"face_stiffness": 1.0}, "c10": {"cell_mm": 10.0}, "c10both": {"cell_mm": 10.0, "cut_faces": ("superior", "inferior")}}
+    for label in a.planes.split(","):
+        cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=path, targets="gt-inplane",
+                         device="cpu", particle_step=2 if a.case == "phantom" else 1)
+        cfg = replace(cfg, slices=fem_truth.slices_through_pancreas(cfg, fem_truth.PLANES[label]))
+        prep = prepare_case(cfg)
+        gt = make_ground_truth(prep, cfg)
+        model = prep.model(cfg.organs)
+        gt_pos = gt_for_model(gt, model)
+        slices = prep.resolve_slices(model, cfg.slices)
+        tg = run_targets(prep, gt, model, gt_pos, slices, cfg)
+        idx, targets, axes = tg.idx, tg.targets_mm, tg.drive.axes
+        on = np.zeros(model.n, bool)
+        on[idx] = True
+        copy = tg.combined_mm if tg.combined_mm is not None else propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]))
+        rows = {"initial": model.positions_mm, "copy": copy}
+        rows |= baseline_positions(model, idx, targets, axes)
+        for v in a.variants.split(","):
+            t0 = time.perf_counter()
+            cm = CompletionModel(prep.case, preset, model, CompletionConfig(**variants[v]))
+            r = complete(cm, idx, targets, axes, copy)
+            print(f"  {v}: build {cm.build_s:.1f} s, {cm.summary()['unknowns']} unknowns, setup {r.info['setup_s']:.1f} s, solve "
+                  f"{r.wall_s:.2f} s, {r.iterations} it, residual {r.residual:.1e}, rms on {r.on_plane_rms_mm:.2f} off {r.off_plane_rms_mm:.2f}, "
+                  f"total {time.perf_counter() - t0:.1f} s", flush=True)
+            rows["C:" + v] = r.positions_mm
+        print(f"{a.case} {a.loads} {label} ({cfg.slices}), frame {n}")
+        print("method".ljust(22) + "".join(o[:10].rjust(11) for o in model.organs) + "   dist-err s/d/k")
+        for name, pos in rows.items():
+            sc = organ_scores(model, pos, gt_pos, on)
+            dist = " ".join(f"{sc[o]['distance_error_mm']:+.1f}" for o in model.organs if "distance_error_mm" in sc[o])
+            print(name.ljust(22) + "".join(f"{sc[o]['error_mm']:11.2f}" for o in model.organs) + "   " + dist
+                  + "   seen " + "".join(o[0] for o in model.organs if sc[o]["seen"])
+                  + "   lr/ap/si " + " ".join(f"{sc[o]['lr_mm']:.1f}/{sc[o]['ap_mm']:.1f}/{sc[o]['si_mm']:.1f}" for o in model.organs))
+
+
+if __name__ == "__main__":
+    main()
