@@ -1,0 +1,143 @@
+"""The completion solve (``warpmpm.solvers.completion``) against the copies of what the planes see, on finite-element
+truths (``warpmpm.truth_fem``, not made by anything the estimator uses), every organ.
+
+    python benchmarks/completion.py [--cases mr,ct,phantom] [--loads breathing,breathing+push] [--planes sagittal+coronal,sagittal]
+
+For each case and load, a 16-frame truth (seed 0) and its frame of largest pancreas motion; each plane set where it
+shows the most of the pancreas; targets: the true in-plane motion of the planes' particles (``gt-inplane``, the ceiling
+of any 2D registration). Methods, all with the same information: ``copy`` (``propagate_planes``, or ``propagate`` with
+one plane), ``rigid`` (each seen organ's observed translation), ``nearest`` / ``global`` (organs on no plane),
+``completion`` (default config) and ``completion_paper`` (the seed paper's organ materials). The slice-driven
+estimator of the same truths is in ``fem_truth_table.json`` (``benchmarks/fem_truth.py --table``): it is not re-run
+here (minutes a run). Prints one table per (case, load, planes); raw numbers in
+``benchmarks/results/completion_table.json`` with every organ's JSON scores and the solve's report.
+"""
+
+import argparse
+import os
+import tempfile
+import time
+from dataclasses import replace
+
+import numpy as np
+
+import fem_truth
+import raw
+
+
+def report(path: str, estimate_path: str | None = None) -> str:
+    """Markdown from a raw file: per (case, load, planes) each organ's copy, best same-information baseline for organs
+    on no plane (``nearest`` / ``global``), ``completion``, and the slice-driven estimate of the same truth and planes
+    from ``fem_truth_table.json`` where it has the row."""
+    import json
+
+    with open(path) as fh:
+        rows = json.load(fh)["data"]
+    est = {}
+    if estimate_path and os.path.exists(estimate_path):
+        with open(estimate_path) as fh:
+            for r in json.load(fh)["data"]["runs"]:
+                est[(r["case"], r["load"], r["planes"])] = r["result"]["results"]["estimate"]["organs"]
+    organs = ("pancreas", "stomach", "duodenum", "left_kidney")
+    head = "| case | load | planes | " + " | ".join(f"{o.replace('_', ' ')}: copy / other / completion / estimate" for o in organs) + " |"
+    lines = [head, "|---|---|---|" + "---|" * len(organs)]
+    for r in rows:
+        sc = r["scores"]
+        e = est.get((r["case"], r["load"], r["planes"]), {})
+        cells = []
+        for o in organs:
+            if o not in sc["copy"]:
+                cells.append("")
+                continue
+            other = (f"{min(sc['nearest'][o]['error_mm'], sc['global'][o]['error_mm']):.2f}" if o not in r["seen"] and "nearest" in sc
+                     else f"{sc['rigid'][o]['error_mm']:.2f}")
+            mark = "" if o in r["seen"] else "*"
+            cells.append(f"{mark}{sc['copy'][o]['error_mm']:.2f} / {other} / **{sc['completion'][o]['error_mm']:.2f}** / "
+                         + (f"{e[o]['error_mm']:.2f}" if o in e else "-"))
+        lines.append(f"| {r['case']} | {r['load']} | {r['planes']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cases", default="mr,ct,phantom")
+    p.add_argument("--loads", default="breathing,breathing+push")
+    p.add_argument("--planes", default="sagittal+coronal,sagittal")
+    p.add_argument("--raw", type=raw.check_name, default="completion_table")
+    p.add_argument("--report", default=None, metavar="JSON", help="print the markdown table of a raw file and stop")
+    a = p.parse_args()
+    if a.report:
+        print(report(a.report, os.path.join(raw.RESULTS, "fem_truth_table.json")))
+        return
+    from warpmpm.experiment.baselines import propagate
+    from warpmpm.experiment.case import prepare_case
+    from warpmpm.experiment.config import CaseConfig
+    from warpmpm.experiment.organs import baseline_positions, organ_scores, true_distances
+    from warpmpm.experiment.targets import run_targets
+    from warpmpm.experiment.truth import gt_for_model, make_ground_truth
+    from warpmpm.fields import write_field
+    from warpmpm.images import write_case
+    from warpmpm.solvers.completion import CompletionConfig, CompletionModel, complete
+    from warpmpm.truth_fem import TruthConfig, make_truth
+
+    rows = []
+    work = tempfile.mkdtemp(prefix="completion-")
+    for name in a.cases.split(","):
+        try:
+            case, preset, img, lab = fem_truth.load(name)
+        except SystemExit as e:
+            print(e)
+            continue
+        if img is None:
+            img, lab = os.path.join(work, "phantom_image.nii.gz"), os.path.join(work, "phantom_labels.nii.gz")
+            write_case(case, lab, img)
+        for loads in a.loads.split(","):
+            series = make_truth(case, preset, TruthConfig(loads=tuple(loads.split("+")), frames=16, seed=0))
+            n = fem_truth.peak_frame(series)
+            path = os.path.join(work, f"{name}_{loads}_{n}.nii.gz")
+            write_field(series.field(n), case.geometry, path)
+            for label in a.planes.split(","):
+                cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=path, targets="gt-inplane",
+                                 device="cpu", particle_step=2 if name == "phantom" else 1)
+                cfg = replace(cfg, slices=fem_truth.slices_through_pancreas(cfg, fem_truth.PLANES[label]))
+                prep = prepare_case(cfg)
+                gt = make_ground_truth(prep, cfg)
+                model = prep.model(cfg.organs)
+                gt_pos = gt_for_model(gt, model)
+                slices = prep.resolve_slices(model, cfg.slices)
+                tg = run_targets(prep, gt, model, gt_pos, slices, cfg)
+                idx, targets, axes = tg.idx, tg.targets_mm, tg.drive.axes
+                on = np.zeros(model.n, bool)
+                on[idx] = True
+                copy = tg.combined_mm if tg.combined_mm is not None else propagate(
+                    model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]))
+                methods = {"initial": (model.positions_mm, {}), "copy": (copy, {})}
+                methods |= {k: (v, {}) for k, v in baseline_positions(model, idx, targets, axes).items()}
+                for variant, c_cfg in (("completion", CompletionConfig()), ("completion_paper", CompletionConfig(materials="paper"))):
+                    t0 = time.perf_counter()
+                    cm = CompletionModel(prep.case, preset, model, c_cfg)
+                    r = complete(cm, idx, targets, axes, copy)
+                    methods[variant] = (r.positions_mm, {"wall_s": time.perf_counter() - t0, "build_s": cm.build_s, "solve_s": r.wall_s,
+                                                         "converged": r.converged, "iterations": r.iterations, "residual": r.residual,
+                                                         **cm.summary()})
+                truth_d = true_distances(model, gt_pos)
+                scores = {m: organ_scores(model, pos, gt_pos, on, truth_distances=truth_d) for m, (pos, _) in methods.items()}
+                seen = [o for o in model.organs if scores["rigid"][o]["seen"]]
+                row = {"case": name, "load": loads, "planes": label, "slices": cfg.slices, "frame": n, "seen": seen,
+                       "truth_made_by": series.record["made_by"], "scores": scores, "info": {m: i for m, (_, i) in methods.items()}}
+                rows.append(row)
+                raw.save(a.raw, rows, quiet=True)
+                print(f"\n{name}, {loads}, {label} ({cfg.slices}), frame {n}; seen: {', '.join(seen)}; "
+                      f"completion {methods['completion'][1]['wall_s']:.1f} s, {methods['completion'][1]['unknowns']:,} unknowns, "
+                      f"converged {methods['completion'][1]['converged']}")
+                print("| method | " + " | ".join(model.organs) + " |")
+                print("|---|" + "---|" * len(model.organs))
+                for m, sc in scores.items():
+                    cells = [f"{sc[o]['error_mm']:.2f}" if (m not in ("nearest", "global") or o not in seen) else "" for o in model.organs]
+                    print(f"| {m} | " + " | ".join(cells) + " |", flush=True)
+    raw.save(a.raw, rows)
+    print(f"\nraw numbers: benchmarks/results/{a.raw}.json")
+
+
+if __name__ == "__main__":
+    main()
