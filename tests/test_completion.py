@@ -94,3 +94,27 @@ def test_a_solve_stopped_short_is_not_converged(phantom):
 def test_bad_config_is_refused(bad):
     with pytest.raises(InputError):
         CompletionConfig(**bad)
+
+
+def test_tissue_seen_on_a_plane_carries_an_organ_no_plane_crosses(phantom):
+    """With no organ observed at all, a translation of the tissue on one plane (tissue_motion) must move every organ,
+    off the plane, with it through the tissue (nothing is held in the phantom: the equilibrium is the translation);
+    with tissue_stiffness 0 nothing moves."""
+    prep, model = phantom
+    x = model.positions_mm
+    t = np.array([0.0, 0.0, -5.0])
+    z0 = float(np.median(x[:, 2]))
+
+    def tissue_motion(pts):
+        on = np.nonzero(np.abs(pts[:, 2] - z0) < 3.0)[0]
+        return on, np.tile(t, (len(on), 1)), np.tile(np.eye(3), (len(on), 1, 1))
+
+    none = np.zeros(0, np.int64)
+    moved = {}
+    for k in (0.0, 100.0):
+        cm = CompletionModel(prep.case, "amos", model, CompletionConfig(tissue_stiffness=k, rtol=1e-8))
+        r = complete(cm, none, np.zeros((0, 3)), None, x.copy(), tissue_motion=tissue_motion)
+        moved[k] = {o: (r.positions_mm - x)[model.organ_slice(o)].mean(0) for o in model.organs}
+    for o in model.organs:
+        assert np.allclose(moved[0.0][o], 0.0, atol=1e-6)
+        assert np.allclose(moved[100.0][o], t, atol=0.02 * np.linalg.norm(t)), (o, moved[100.0][o])

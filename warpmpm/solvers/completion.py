@@ -59,7 +59,7 @@ import warp as wp
 
 from ..anatomy import TISSUE_CODE, TISSUES, nominal_material, tissue_map
 from ..errors import InputError, SimulationError
-from ..images import Case
+from ..images import ORGANS, Case
 from ..model import PAPER_MATERIALS, ParticleModel
 from . import completion_kernels as ck
 
@@ -91,6 +91,9 @@ class CompletionConfig:
     ``propagate`` / ``propagate_planes`` baseline's); ``translation``, the organ's observed translation (the
     ``rigid`` baseline's), which carries no in-plane strain for the incompressible tissue to turn into through-plane
     motion. Either way ``observed_first`` returns the copy along the observed directions."""
+    tissue_stiffness: float = 0.0
+    """Spring of a material point of the tissue around the organs lying on a plane toward the plane's observed motion
+    there (the whole slice's in-plane motion), in units of ``mu_soft V / dx^2``; 0: only the organs are observed."""
     unseen_direction_stiffness: float = 1e-2
     """Spring of every node to no motion along the directions no plane measures (one sagittal plane: left-right), in
     units of the stiffness matrix's mean diagonal: without it a model that holds nothing still (no bone labelled)
@@ -200,6 +203,7 @@ class CompletionModel:
             anchor[back[wall]] = True
         self.n_points, self.n_anchors = len(pts), int(anchor.sum())
         self.anchor_points_mm = pts[anchor]
+        self.point_tissue = code
         # the grid: two cells of padding so every stencil (and every particle's) lies inside
         allpts = np.vstack([pts, model.positions_mm])
         self.origin_mm = allpts.min(0) - 2.0 * dx
@@ -313,14 +317,19 @@ class CompletionModel:
         return self.origin_mm + self.dx * np.stack([n // (ny * nz), (n // nz) % ny, n % nz], 1)
 
     # -- a plane set ----------------------------------------------------------------------------------------------
-    def observe(self, on_plane: np.ndarray, on_axes: np.ndarray, off_plane: np.ndarray, off_axes: np.ndarray) -> None:
+    def observe(self, on_plane: np.ndarray, on_axes: np.ndarray, off_plane: np.ndarray, off_axes: np.ndarray,
+                tissue: np.ndarray | None = None, tissue_axes: np.ndarray | None = None) -> None:
         """Set the springs of a plane set: ``on_plane`` particle indices with their projectors ``on_axes`` (n, 3, 3),
-        ``off_plane`` (the seen organs' other particles) with theirs. Assembles the system and its preconditioner; a
-        later call with the same sets keeps them."""
+        ``off_plane`` (the seen organs' other particles) with theirs, ``tissue`` (indices of material points of the
+        tissue around the organs lying on a plane) with theirs. Assembles the system and its preconditioner; a later
+        call with the same sets keeps them."""
         import pyamg
         import scipy.sparse as sp
 
-        key = (on_plane.tobytes(), np.asarray(on_axes, np.float32).tobytes(), off_plane.tobytes(), np.asarray(off_axes, np.float32).tobytes())
+        tissue = np.zeros(0, np.int64) if tissue is None else np.asarray(tissue, np.int64)
+        tissue_axes = np.zeros((0, 3, 3)) if tissue_axes is None else np.asarray(tissue_axes)
+        key = (on_plane.tobytes(), np.asarray(on_axes, np.float32).tobytes(), off_plane.tobytes(), np.asarray(off_axes, np.float32).tobytes(),
+               tissue.tobytes())
         if self._plan is not None and self._plan["key"] == key:
             return
         t0 = time.perf_counter()
@@ -331,14 +340,18 @@ class CompletionModel:
         scale = self.mu_soft * self.model.volume_mm3 / self.dx ** 2
         k_on = (cfg.on_plane_stiffness * scale[on_plane]).astype(np.float32)
         k_off = (cfg.off_plane_stiffness * scale[off_plane]).astype(np.float32)
-        idx = np.concatenate([on_plane, off_plane]).astype(np.int64)
-        k = np.concatenate([k_on, k_off])
-        P = np.concatenate([np.asarray(on_axes, np.float32).reshape(-1, 3, 3), np.asarray(off_axes, np.float32).reshape(-1, 3, 3)])
+        k_t = np.full(len(tissue), cfg.tissue_stiffness * self.mu_soft * self.point_volume_mm3 / self.dx ** 2, np.float32)
+        xs = np.concatenate([xp[on_plane], xp[off_plane], (self.points_mm[tissue] - self.origin_mm) / self.dx])
+        idx = np.concatenate([on_plane, off_plane, -1 - tissue]).astype(np.int64)
+        k = np.concatenate([k_on, k_off, k_t])
+        P = np.concatenate([np.asarray(on_axes, np.float32).reshape(-1, 3, 3), np.asarray(off_axes, np.float32).reshape(-1, 3, 3),
+                            np.asarray(tissue_axes, np.float32).reshape(-1, 3, 3)])
         use = k > 0
-        idx, k, P = idx[use], k[use], P[use]
-        self._add_springs(stencil, xp[idx], k, P)
+        idx, k, P, xs = idx[use], k[use], P[use], xs[use]
+        self._add_springs(stencil, xs, k, P)
         A = self.K + self._to_csr(stencil)
-        Q = np.eye(3) - observed_projector(np.concatenate([np.asarray(on_axes, np.float64).reshape(-1, 3, 3)]))
+        Q = np.eye(3) - observed_projector(np.concatenate([np.asarray(on_axes, np.float64).reshape(-1, 3, 3),
+                                                           np.asarray(tissue_axes, np.float64).reshape(-1, 3, 3)]))
         if cfg.unseen_direction_stiffness > 0 and np.abs(Q).max() > 1e-6:
             A = A + sp.kron(sp.identity(na), cfg.unseen_direction_stiffness * float(self.K.diagonal().mean()) * Q, format="csr")
         A = A.tocsr()
@@ -352,24 +365,24 @@ class CompletionModel:
             B[b::3, 3 + j] = c[:, a]
         ml = pyamg.smoothed_aggregation_solver(sp.bsr_matrix(A, blocksize=(3, 3)), B=B, strength=("symmetric", {"theta": 0.0}), max_coarse=1500, coarse_solver="splu")
         self._plan = {"key": key, "A": A, "M": ml.aspreconditioner(cycle="V"), "idx": idx, "k": k, "P": P,
-                      "x": wp.array(xp[idx].astype(np.float32), dtype=wp.vec3, device=self.device),
+                      "x": wp.array(xs.astype(np.float32), dtype=wp.vec3, device=self.device), "use": use,
                       "n_on": int(np.count_nonzero(use[: len(on_plane)])), "setup_s": time.perf_counter() - t0,
                       "levels": len(ml.levels), "nnz": int(A.nnz)}
         self._u = None
         self._plan["setup_s"] = time.perf_counter() - t0
 
-    def solve(self, d_on_mm: np.ndarray, d_off_mm: np.ndarray) -> tuple[np.ndarray, dict]:
-        """Node displacements (n_active, 3) mm for the observed displacements of the ``on_plane`` and ``off_plane``
-        particles of :meth:`observe`, and the solve's report (``converged``, ``iterations``, ``residual``)."""
+    def solve(self, d_on_mm: np.ndarray, d_off_mm: np.ndarray, d_tissue_mm: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+        """Node displacements (n_active, 3) mm for the observed displacements of the ``on_plane``, ``off_plane`` and
+        ``tissue`` springs of :meth:`observe`, and the solve's report (``converged``, ``iterations``, ``residual``)."""
         plan = self._plan
         if plan is None:
             raise SimulationError("CompletionModel.solve before observe(): no plane set")
         na = len(self.active_nodes)
-        d = np.concatenate([np.asarray(d_on_mm, np.float32).reshape(-1, 3), np.asarray(d_off_mm, np.float32).reshape(-1, 3)])
-        keep = np.ones(len(d), bool)
-        if len(d) != len(plan["idx"]):  # springs of zero stiffness were dropped
-            keep = np.concatenate([np.full(len(d_on_mm), True), np.full(len(d_off_mm), self.config.off_plane_stiffness > 0)])
-        d = d[keep]
+        d = np.concatenate([np.asarray(d_on_mm, np.float32).reshape(-1, 3), np.asarray(d_off_mm, np.float32).reshape(-1, 3),
+                            np.zeros((0, 3), np.float32) if d_tissue_mm is None else np.asarray(d_tissue_mm, np.float32).reshape(-1, 3)])
+        if len(d) != len(plan["use"]):
+            raise SimulationError(f"CompletionModel.solve: {len(d)} displacements for the {len(plan['use'])} springs of observe()")
+        d = d[plan["use"]]  # springs of zero stiffness were dropped
         f = wp.zeros(na, dtype=wp.vec3d, device=self.device)
         wp.launch(ck.spring_load, dim=len(d), device=self.device,
                   inputs=[plan["x"], wp.array(plan["k"], dtype=float, device=self.device), wp.array(plan["P"], dtype=wp.mat33, device=self.device),
@@ -410,6 +423,27 @@ class CompletionModel:
                 "unknowns": int(3 * len(self.active_nodes)), "build_s": self.build_s, "materials": self.config.materials}
 
 
+def slice_tissue_motion(geometry, slices, affines, axes_of, centre_mm: np.ndarray, half_width_mm: float):
+    """A ``tissue_motion`` for :func:`complete`: the points within ``half_width_mm`` of a slice (``slices``, indices on
+    ``geometry``) move by that slice's in-plane motion (``affines[k].apply``; ``axes_of(orientation)`` gives the
+    in-plane axes), observed along the slice's two in-plane directions."""
+    from ..slices import orientation_image_axis
+
+    def motion(pts: np.ndarray):
+        ijk = geometry.world_to_index(pts)
+        sel, d, P = [], [], []
+        for s, aff in zip(slices, affines):
+            ax = orientation_image_axis(geometry, s.orientation)
+            on = np.nonzero(np.abs(ijk[:, ax] - s.index) * geometry.spacing_mm[ax] <= half_width_mm)[0]
+            e_u, e_v = axes_of(s.orientation)
+            sel.append(on)
+            d.append(aff.apply(pts[on], e_u, e_v, centre_mm) - pts[on])
+            P.append(np.broadcast_to(np.outer(e_u, e_u) + np.outer(e_v, e_v), (len(on), 3, 3)))
+        return np.concatenate(sel), np.concatenate(d), np.concatenate(P)
+
+    return motion
+
+
 #: Fewest particles of an organ on the planes for its off-plane particles to be tied to its observed motion.
 MIN_SEEN = 10
 
@@ -424,7 +458,7 @@ def observed_projector(axes: np.ndarray) -> np.ndarray:
 
 
 def complete(cm: CompletionModel, idx: np.ndarray, targets_mm: np.ndarray, axes: np.ndarray | None,
-             copy_mm: np.ndarray) -> CompletionResult:
+             copy_mm: np.ndarray, tissue_motion=None) -> CompletionResult:
     """One frame: the model's particles completed from the observed displacements of the particles ``idx`` on the
     planes (``targets_mm``, along the projectors ``axes``; None: all three directions) and the planes' motion copied
     off them (``copy_mm``: every particle's position under the copy; only the seen organs' are used)."""
@@ -450,10 +484,16 @@ def complete(cm: CompletionModel, idx: np.ndarray, targets_mm: np.ndarray, axes:
         off_t.append(np.broadcast_to(t, (len(rest), 3)))
     off = np.concatenate(off_parts) if off_parts else np.zeros(0, np.int64)
     offP = np.concatenate(off_P) if off_P else np.zeros((0, 3, 3))
-    cm.observe(idx, axes, off, offP)
+    t_idx, t_d, t_P = None, None, None
+    if tissue_motion is not None and cm.config.tissue_stiffness > 0:
+        organ_codes = [TISSUE_CODE[o] for o in ORGANS if o in TISSUE_CODE]
+        around = np.nonzero(~np.isin(cm.point_tissue, organ_codes))[0]
+        sel, t_d, t_P = tissue_motion(cm.points_mm[around])
+        t_idx = around[sel]
+    cm.observe(idx, axes, off, offP, t_idx, t_P)
     d_off = copy_mm[off] - x[off]
     pull = np.concatenate(off_t) if (off_t and cm.config.off_plane_motion == "translation") else d_off
-    u, info = cm.solve(d_on, pull)
+    u, info = cm.solve(d_on, pull, t_d)
     disp = cm.particle_displacements(u)
     r_on = np.einsum("nij,nj->ni", axes, disp[idx] - d_on)
     r_off = np.einsum("nij,nj->ni", offP, disp[off] - pull)
