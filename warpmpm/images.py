@@ -20,6 +20,12 @@ import warnings
 
 from .errors import InputError, InputWarning
 
+__all__ = ["ORGANS", "ORGAN_LETTERS", "COMBINATIONS", "PRESETS", "resolve_labels", "parse_organs",
+           "organs_to_letters", "Geometry", "grid_differences", "check_file_integrity", "read_volume", "Case",
+           "load_case", "MAX_ORGAN_VOLUME_ML", "MAX_DISTANCE_TO_PANCREAS_MM", "plausibility_warnings",
+           "crop_to_organs", "pad_square", "mask_image", "write_case", "ORIENTATION_WORLD_AXIS",
+           "orientation_image_axis"]
+
 #: Organ names in the method's order and their one-letter codes (the paper's ``psdl``).
 ORGANS = ("pancreas", "stomach", "duodenum", "left_kidney")
 ORGAN_LETTERS = {"p": "pancreas", "s": "stomach", "d": "duodenum", "l": "left_kidney"}
@@ -442,3 +448,15 @@ def write_case(case: Case, labels_path, image_path=None) -> None:
     sitk.WriteImage(case.labels_image(), os.fspath(labels_path))
     if image_path is not None:
         sitk.WriteImage(case.intensity_image(), os.fspath(image_path))
+
+
+#: Orientation name -> world axis it is normal to (0: x L-R, 1: y A-P, 2: z S-I).
+ORIENTATION_WORLD_AXIS = {"sagittal": 0, "coronal": 1, "axial": 2}
+
+
+def orientation_image_axis(geometry: Geometry, orientation: str) -> int:
+    """The image axis (0: i, 1: j, 2: k) whose direction is closest to the orientation's normal."""
+    if orientation not in ORIENTATION_WORLD_AXIS:
+        raise InputError(f"unknown slice orientation {orientation!r}; use axial, sagittal or coronal")
+    world_axis = ORIENTATION_WORLD_AXIS[orientation]
+    return int(np.argmax(np.abs(geometry.direction_matrix[world_axis, :])))

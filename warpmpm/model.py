@@ -25,8 +25,10 @@ import numpy as np
 import SimpleITK as sitk
 
 from .errors import InputError
-from .images import ORGANS, Case, Geometry, organs_to_letters, parse_organs
-from .slices import orientation_image_axis
+from .images import ORGANS, Case, Geometry, orientation_image_axis, organs_to_letters, parse_organs
+
+__all__ = ["Material", "PAPER_MATERIALS", "ParticleModel", "build_model", "MAX_LATTICE_ANISOTROPY",
+           "lattice_geometry", "shape_based_labels", "voxelize"]
 
 
 @dataclass(frozen=True)

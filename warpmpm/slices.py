@@ -21,25 +21,16 @@ import numpy as np
 import SimpleITK as sitk
 
 from .errors import InputError
-from .images import Geometry
+from .images import ORIENTATION_WORLD_AXIS, Geometry, orientation_image_axis  # noqa: F401 (re-exported: the plane of a slice)
+
+__all__ = ["Orientation", "ORIENTATIONS", "in_plane_axes", "DrivingSlice", "parse_slices", "driven_indices",
+           "apply_in_plane_affine", "InPlaneAffine", "extract_slice"]
 
 if TYPE_CHECKING:  # the particle model is only read here (duck-typed), never imported at run time
     from .model import ParticleModel
 
 Orientation = Literal["axial", "sagittal", "coronal"]
 ORIENTATIONS: tuple[str, ...] = ("axial", "sagittal", "coronal")
-
-#: Orientation name -> world axis it is normal to (0: x L-R, 1: y A-P, 2: z S-I).
-ORIENTATION_WORLD_AXIS = {"sagittal": 0, "coronal": 1, "axial": 2}
-
-
-def orientation_image_axis(geometry: Geometry, orientation: str) -> int:
-    """The image axis (0: i, 1: j, 2: k) whose direction is closest to the orientation's normal."""
-    if orientation not in ORIENTATION_WORLD_AXIS:
-        raise InputError(f"unknown slice orientation {orientation!r}; use axial, sagittal or coronal")
-    world_axis = ORIENTATION_WORLD_AXIS[orientation]
-    return int(np.argmax(np.abs(geometry.direction_matrix[world_axis, :])))
-
 
 def in_plane_axes(model_or_geometry, orientation: str) -> tuple[np.ndarray, np.ndarray]:
     """World unit vectors (e_u, e_v) of a slice's two in-plane image axes, in image-axis order."""
