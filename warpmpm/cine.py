@@ -21,6 +21,8 @@ import SimpleITK as sitk
 from .errors import InputError
 from .images import check_file_integrity
 
+__all__ = ["IMAGE_SUFFIXES", "CineFrame", "read_cine"]
+
 IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".dcm")
 
 

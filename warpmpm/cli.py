@@ -25,6 +25,9 @@ from dataclasses import replace
 
 from .errors import InputError, SimulationError
 
+__all__ = ["build_parser", "config_from_args", "cmd_run", "cmd_sweep", "cmd_multi", "cmd_train", "cmd_view",
+           "cmd_track", "cmd_make_cine", "cmd_make_truth", "cmd_evaluate_track", "COMMANDS", "main", "run_main"]
+
 EXIT_TASKS_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_PIPE_CLOSED = 1, 2, 3, 130, 141
 
 

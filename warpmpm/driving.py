@@ -40,6 +40,9 @@ from .quasistatic import QuasiStaticSolver
 from .rigid_modes import GUARD_GROWTH, GUARD_STEPS, RigidModeAccelerator
 from .solver import MPMModel, MPMSolver, SolverConfig
 
+__all__ = ["ConvergenceConfig", "ConvergenceMonitor", "Gains", "DriveConfig", "pid_force", "DriveResult",
+           "SliceDrivenEstimator"]
+
 # forward kernels only, no adjoints to compile (why: warpmpm.kernels)
 wp.set_module_options({"enable_backward": False})
 

@@ -6,6 +6,8 @@
   grid). The CLI prints one ``simulation error:`` line and exits with code 3.
 """
 
+__all__ = ["InputError", "InputWarning", "SimulationError"]
+
 
 class InputError(ValueError):
     """Bad user input: a missing file, an unknown preset, mismatched grids, an absent organ..."""

@@ -17,6 +17,8 @@ import numpy as np
 from .errors import InputError
 from .model import ParticleModel
 
+__all__ = ["DIRECT_MAX_DOFS", "fem_displacement_mm"]
+
 
 #: Free degrees of freedom above which :func:`fem_displacement_mm` solves iteratively (conjugate gradients with an
 #: algebraic-multigrid preconditioner, ``pyamg``) instead of by a sparse direct factorisation: at 2x refinement of

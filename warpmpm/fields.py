@@ -20,6 +20,8 @@ import SimpleITK as sitk
 from .errors import InputError, InputWarning
 from .images import Geometry, check_file_integrity, grid_differences
 
+__all__ = ["write_field", "read_field", "jacobian_determinant", "sample_field", "inverse_positions", "warp_volume"]
+
 
 def write_field(field_mm: np.ndarray, geometry: Geometry, path: str) -> None:
     """Write a (z, y, x, 3) displacement (mm, world LPS) as a float32 vector image on ``geometry``, through a

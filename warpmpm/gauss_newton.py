@@ -40,6 +40,8 @@ import SimpleITK as sitk
 
 from .errors import InputError
 
+__all__ = ["GaussNewtonConfig", "GaussNewtonResult", "PRIOR_MASK", "ncc", "register_affine_gn"]
+
 
 @dataclass(frozen=True)
 class GaussNewtonConfig:

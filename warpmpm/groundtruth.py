@@ -30,6 +30,9 @@ from .rendering import particle_label_map, warp_volume  # noqa: F401  (particle_
 from .slices import InPlaneAffine, in_plane_axes
 from .solver import SolverConfig
 
+__all__ = ["PAPER_DEFORMATIONS", "paper_affine", "perturb_materials", "GroundTruth", "GT_CFL", "gt_solver_config",
+           "simulate_gt", "paper_ground_truth", "contact_targets", "contact_ground_truth", "warp_image"]
+
 #: The paper's deformation table: type -> (r, g, s).
 PAPER_DEFORMATIONS = {
     1: (-2.0, -2.0, 0.8), 2: (-2.0, -2.0, 1.2), 3: (-2.0, 2.0, 0.8), 4: (-2.0, 2.0, 1.2),

@@ -26,6 +26,12 @@ from typing import Any
 
 import warp as wp
 
+__all__ = ["STATUS_OK", "STATUS_NONFINITE", "STATUS_LEFT_GRID", "BLOCK", "bspline_weights", "base_node", "cofactor",
+           "polar_rotation", "offset_in_stencil", "stencil", "fixed_corotated_kirchhoff", "stress_impulse",
+           "apic_stress_affine", "scatter_linear", "p2g", "bspline_slopes", "p2g_fields", "slip_walls",
+           "grid_update_fields", "update_node", "grid_update", "grid_update_blocks", "is_finite_vec",
+           "gather_velocity", "g2p", "stiffness_rayleigh", "adapt_damping"]
+
 # Forward kernels only (nothing here is differentiated): no adjoint code to build, which halves the first run's
 # compile (CPU 55 -> 22 s for the package's four kernel modules; CUDA PTX 91 -> 18 s an architecture).
 wp.set_module_options({"enable_backward": False})

@@ -7,6 +7,8 @@ import numpy as np
 from .images import Geometry
 from .model import voxelize
 
+__all__ = ["particle_errors_mm", "dice", "covering_geometry", "evaluate"]
+
 
 def particle_errors_mm(estimate_mm: np.ndarray, truth_mm: np.ndarray) -> np.ndarray:
     """Per-particle distance ||x_GT - x_est|| in mm."""

@@ -27,6 +27,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import warp as wp
 
+__all__ = ["cpu_cores", "THREADS_VARIABLE", "default_threads", "split", "run_together", "ChunkViews"]
+
 _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
 _POOL_LOCK = threading.Lock()

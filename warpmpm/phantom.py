@@ -20,6 +20,8 @@ import numpy as np
 from .errors import InputError
 from .images import PRESETS, Case, Geometry
 
+__all__ = ["INTENSITY", "PhantomConfig", "make_phantom"]
+
 #: Intensities of the synthetic MR-like image (arbitrary units, T1-like contrast).
 INTENSITY = {"background": 0.0, "body": 180.0, "liver": 330.0, "spine": 90.0,
              "pancreas": 420.0, "stomach": 240.0, "duodenum": 300.0, "left_kidney": 520.0}

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+__all__ = ["Recorder", "NullRecorder"]
+
 if TYPE_CHECKING:
     from .images import Case
     from .model import ParticleModel

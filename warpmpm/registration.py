@@ -22,6 +22,11 @@ from .gauss_newton import GaussNewtonConfig, ncc, register_affine_gn
 from .images import Geometry
 from .slices import InPlaneAffine, extract_slice
 
+__all__ = ["capture_slice", "crop_to_mask", "BACKENDS", "ONE_THREAD_MAX_PIXELS", "one_itk_thread",
+           "SliceRegistration", "register_slices", "register_slice_organs", "slice_metric", "SliceField",
+           "register_slice_bspline", "register_organ_demons", "slice_mask", "resample_slice_affine",
+           "VolumeRegistration", "register_volumes_affine", "organ_intensity_volume"]
+
 
 # --------------------------------------------------------------------------------------------
 # 2D slices

@@ -32,6 +32,9 @@ from .errors import InputError
 from .images import Case, Geometry
 from .model import ParticleModel, voxelize
 
+__all__ = ["backward_displacement", "FAR_CELLS_PER_SIGMA", "scatter_displacements", "warp_volume", "warp_array",
+           "slab_region", "render_plane", "particle_label_map"]
+
 
 def _check_sigmas(sigma_mm: float, far_sigma_mm: float) -> None:
     for name, v in (("sigma_mm", sigma_mm), ("far_sigma_mm", far_sigma_mm)):

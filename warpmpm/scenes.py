@@ -12,6 +12,8 @@ from .errors import InputError
 from .images import ORGANS, Geometry
 from .model import PAPER_MATERIALS, Material, ParticleModel
 
+__all__ = ["block_model", "merge_models", "inclusion_model"]
+
 
 def block_model(
     shape: tuple[int, int, int],

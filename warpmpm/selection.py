@@ -28,6 +28,11 @@ from .errors import InputError
 from .images import COMBINATIONS, ORGANS, parse_organs
 from .model import ParticleModel
 
+__all__ = ["SELECTOR_DIR", "DEFAULT_SELECTOR", "DEFAULT_PLANE_SELECTOR", "FEATURES", "COUNT_FEATURES",
+           "HIGHER_IS_BETTER", "raw_features", "standardise", "candidates", "r2_score", "rmse", "TrainingTable",
+           "percentile_rank", "split_by_case", "split_by_row", "ConditionSelector", "tune_and_train",
+           "within_group_scores", "regret", "baseline_regret"]
+
 #: The selectors behind README's figures, shipped with the package: the axial slice and combination
 #: model (error target) and the sagittal/coronal Dice-rank model (their training reports lie beside them).
 SELECTOR_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "selectors")

@@ -35,6 +35,11 @@ from . import kernels, parallel
 from .errors import InputError, SimulationError
 from .model import ParticleModel
 
+__all__ = ["QuasiStaticConfig", "MIN_LAYERS_PER_CELL", "RIGID_MODE_AGGREGATE_MM", "RIGID_MODE_BASIS",
+           "RIGID_MODE_BASES", "SolverConfig", "RAYLEIGH_SLOTS", "BYTES_PER_PARTICLE", "BYTES_PER_NODE",
+           "BYTES_PER_NODE_COPY", "grid_layout", "memory_estimate_bytes", "cpu_threads", "default_device", "MPMModel",
+           "State", "MPMSolver"]
+
 
 @dataclass(frozen=True)
 class QuasiStaticConfig:

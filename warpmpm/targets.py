@@ -28,6 +28,10 @@ from .rendering import particle_label_map, warp_array
 from .registration import SliceField, capture_slice, register_organ_demons, register_slice_bspline, register_slice_organs, slice_mask
 from .slices import DrivingSlice, InPlaneAffine, driven_indices, extract_slice, in_plane_axes
 
+__all__ = ["plane_projector", "DriveTargets", "slice_targets", "affine_drive_targets", "affine_targets",
+           "truth_targets", "in_plane_truth_targets", "in_plane_errors_mm", "field_motion", "MIN_ORGAN_PIXELS",
+           "registration_targets", "MAX_PASSES", "combine_planes"]
+
 
 def plane_projector(model_or_geometry, orientation: str) -> np.ndarray:
     """(3, 3) projector onto a slice's plane: ``e_u e_u^T + e_v e_v^T``."""

@@ -36,6 +36,8 @@ from .registration import BACKENDS, register_slice_organs
 from .rendering import particle_label_map, render_plane, scatter_displacements
 from .solver import SolverConfig
 
+__all__ = ["TRACK_FIELDS", "TrackerConfig", "TrackedFrame", "Tracker", "displacement_field"]
+
 TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "settled", "body_motion_mm", "reason",
                 "wall_s", "rms_residual_mm", "registration_ms",
                 "reference_ms", "pancreas_x_mm", "pancreas_y_mm", "pancreas_z_mm", "pancreas_shift_mm"] + [f"max_{o}_mm" for o in ORGANS]

@@ -71,6 +71,11 @@ from .anatomy import ANCHOR_LABELS, LIVER_LABELS, TISSUE_RANGES, TISSUES, Tissue
 from .anatomy import TISSUE_CODE as _T
 from .images import ORGANS, Case, Geometry
 
+__all__ = ["LOADS", "DIRECT_MAX_DOFS", "TruthConfig", "CORNERS", "reference_matrices", "assemble", "ElasticSolver",
+           "BoxMesh", "draw_materials", "build_abdomen_mesh", "anatomical_axes", "BreathingCycles", "draw_loads",
+           "cell_eigenstrain", "load_state", "diaphragm_displacement", "TruthSeries", "AbdomenModel", "make_truth",
+           "write_truth"]
+
 #: The loads a truth frame can combine.
 LOADS = ("breathing", "drift", "filling", "push", "peristalsis")
 

@@ -9,6 +9,8 @@ from ..selection import DEFAULT_PLANE_SELECTOR, DEFAULT_SELECTOR, ConditionSelec
 from .case import prepare_case
 from .config import AUTO_MODES, CaseConfig
 
+__all__ = ["auto_condition"]
+
 
 def auto_condition(cfg: CaseConfig, selector_path: str | None = None, plane_selector_path: str | None = None) -> tuple[str, str, dict]:
     """(organs, slices) chosen by the selection models for this case, and what they reported.

@@ -26,6 +26,8 @@ from ..targets import field_motion
 from .capture import planning_and_gt_volumes
 from .case import PreparedCase
 
+__all__ = ["propagate", "UNCERTAIN_MM", "volume_registration"]
+
 
 def propagate(model: ParticleModel, s: DrivingSlice, affine: InPlaneAffine, centre_mm: np.ndarray,
               organ_affines: dict | None = None, field=None, organ_fields: dict | None = None) -> np.ndarray:

@@ -13,6 +13,8 @@ from ..groundtruth import GroundTruth, warp_image
 from ..images import Case
 from ..registration import organ_intensity_volume
 
+__all__ = ["planning_and_gt_volumes"]
+
 
 def planning_and_gt_volumes(case: Case, gt: GroundTruth) -> tuple[np.ndarray, np.ndarray]:
     """The planning intensity volume and the same at the GT state, (z, y, x) on the case grid.

@@ -18,6 +18,8 @@ from ..phantom import make_phantom
 from ..slices import DrivingSlice, parse_slices
 from .config import CaseConfig
 
+__all__ = ["PreparedCase", "prepare_case"]
+
 
 @dataclass
 class PreparedCase:

@@ -30,6 +30,9 @@ from ..metrics import dice, voxelize
 from ..model import build_model
 from ..slices import orientation_image_axis
 
+__all__ = ["MAX_FRAMES", "BREATHING_MM", "check_cine_parameters", "make_cine", "slab_average", "evaluate_track",
+           "plot_track_errors"]
+
 #: Most frames a synthetic series may hold (10 minutes at 10 frames/s).
 MAX_FRAMES = 6000
 

@@ -18,6 +18,9 @@ from ..images import PRESETS, parse_organs
 from ..slices import parse_slices
 from ..solver import SolverConfig
 
+__all__ = ["Protocol", "TargetKind", "DriveMode", "Lattice", "Baseline", "PROTOCOLS", "TARGET_KINDS", "DRIVE_MODES",
+           "BASELINES", "AUTO_MODES", "MAX_SEED", "CaseConfig"]
+
 Protocol = Literal["paper", "contact", "field"]
 TargetKind = Literal["affine", "gt", "gt-inplane", "registration", "registration-affine", "registration-bspline",
                      "registration-demons"]

@@ -13,6 +13,8 @@ import numpy as np
 
 from ..errors import InputError
 
+__all__ = ["check_output_path", "write_json_atomic", "read_rows", "CsvAppender"]
+
 
 def check_output_path(path: str, option: str) -> str:
     """The absolute path of an output file to write later; :class:`InputError` now (before any work)

@@ -18,6 +18,8 @@ from .tables import MULTI_CONDITIONS
 from .tasks import report_failures, run_tasks
 from .truth import gt_for_model, make_ground_truth
 
+__all__ = ["MULTI_FIELDS", "multi_direction_task", "multi_direction"]
+
 MULTI_FIELDS = ["case", "protocol", "deformation", "condition", "pick", "slices", "n_driven", "n_excluded_pancreas",
                 "error_mm", "dice", "initial_error_mm", "initial_dice", "volume_registration_error_mm", "volume_registration_dice",
                 "steps", "wall_s", "converged"]

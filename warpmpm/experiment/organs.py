@@ -24,6 +24,9 @@ import numpy as np
 
 from ..model import ParticleModel
 
+__all__ = ["MIN_SEEN", "ORGANS_AT_RISK", "observed_translation", "seen_organs", "organ_translations", "nearest_seen",
+           "baseline_positions", "true_distances", "organ_scores", "format_organ_table"]
+
 #: Fewest particles of an organ on the driving planes for it to count as seen.
 MIN_SEEN = 10
 

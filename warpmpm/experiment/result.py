@@ -10,6 +10,8 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+__all__ = ["Scores", "EstimateScores", "RunResult"]
+
 
 @dataclass(kw_only=True)
 class Scores:

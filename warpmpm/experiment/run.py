@@ -26,6 +26,8 @@ from .tables import format_table
 from .targets import run_targets
 from .truth import gt_for_model, make_ground_truth
 
+__all__ = ["run_prepared", "check_device", "Progress", "size_report", "run_case"]
+
 
 def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder: Recorder | None = None,
                  progress: Progress | None = None) -> RunResult:

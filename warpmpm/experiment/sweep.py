@@ -22,6 +22,8 @@ from .run import run_prepared
 from .tasks import report_failures, run_tasks
 from .truth import make_ground_truth
 
+__all__ = ["SWEEP_FIELDS", "case_config", "sweep_task", "sweep_cases", "sweep"]
+
 SWEEP_FIELDS = ["case", "protocol", "deformation", "organs", "orientation", "slice", "targets", "excluded_driven", "n_driven", "n_pancreas",
                 "error_mm", "p95_mm", "dice", "steps", "wall_s", "converged",
                 "initial_error_mm", "initial_dice", "propagate_error_mm", "propagate_dice",

@@ -8,6 +8,8 @@ import numpy as np
 from ..images import COMBINATIONS
 from .result import RunResult
 
+__all__ = ["PAPER_MULTI", "MULTI_CONDITIONS", "MULTI_NAMES", "format_table", "summarize", "summarize_multi"]
+
 #: The paper's multi-direction table (20 MR cases x 8 deformations, psdl, GT targets, driven particles excluded):
 #: condition -> (error mm, sd mm, Dice).
 PAPER_MULTI = {"a": (4.26, 1.16, 0.610), "ac": (3.12, 0.989, 0.636), "as": (2.42, 0.584, 0.650), "asc": (2.13, 0.598, 0.662)}

@@ -33,6 +33,8 @@ from .capture import planning_and_gt_volumes
 from .case import PreparedCase
 from .config import CaseConfig
 
+__all__ = ["RunTargets", "slice_affines", "MIN_ORGAN_PARTICLES", "truth_organ_affines", "run_targets"]
+
 
 @dataclass
 class RunTargets:

@@ -11,6 +11,8 @@ import sys
 import threading
 import time
 
+__all__ = ["run_tasks", "report_failures"]
+
 
 def _exit_with_parent(parent_pid: int) -> None:
     """Worker initializer: end this worker when the sweep that started it is gone (``kill -9`` of the

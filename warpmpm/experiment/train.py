@@ -29,6 +29,8 @@ import numpy as np
 from ..errors import InputError
 from ..selection import TrainingTable, baseline_regret, regret, tune_and_train
 
+__all__ = ["selection_time_ms", "train"]
+
 
 def selection_time_ms(model, repeats: int = 200) -> dict:
     """Time of ranking every candidate of the default phantom (built once), as a user's pre-treatment step."""

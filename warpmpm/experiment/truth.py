@@ -16,6 +16,9 @@ from ..model import ParticleModel
 from .case import PreparedCase
 from .config import CaseConfig
 
+__all__ = ["MAX_OUTSIDE_SHARE", "make_ground_truth", "field_ground_truth", "contact_seed",
+           "check_inside_imaged_volume", "gt_for_model"]
+
 #: Largest share of the pancreas a ground truth may move out of the imaged volume.
 MAX_OUTSIDE_SHARE = 0.2
 

@@ -1,0 +1,62 @@
+"""The package's public surface: every name a module lists in ``__all__`` exists, README's names are importable from
+``warpmpm`` without loading Warp kernels first, and no two modules of the package import each other."""
+
+import ast
+import importlib
+import os
+import pkgutil
+import subprocess
+import sys
+
+import warpmpm
+
+ROOT = os.path.dirname(warpmpm.__file__)
+
+
+def test_every_listed_name_exists():
+    for info in pkgutil.walk_packages(warpmpm.__path__, "warpmpm."):
+        if ".viewer" in info.name:
+            continue
+        mod = importlib.import_module(info.name)
+        for name in getattr(mod, "__all__", []):
+            assert hasattr(mod, name), f"{info.name}.__all__ lists {name!r}, which it does not define"
+
+
+def test_readme_names_from_the_package_without_loading_warp():
+    code = ("import sys, warpmpm; assert 'warp' not in sys.modules; "
+            "from warpmpm import run_case, CaseConfig, make_truth, write_field, complete, CompletionConfig; print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0 and "ok" in out.stdout, out.stderr
+
+
+def _imports(path: str, package: str) -> set[str]:
+    """Modules of the package ``path`` imports at module level, type-checking imports included (function bodies left
+    out: a late import inside a function is how a lower layer may call an upper one without a circle)."""
+    tree = ast.parse(open(path).read())
+    out = set()
+    body = list(tree.body)
+    for node in tree.body:
+        if isinstance(node, ast.If):
+            body += node.body
+    for node in body:
+        if isinstance(node, ast.ImportFrom) and node.level > 0:
+            base = package.rsplit(".", node.level - 1)[0] if node.level > 1 else package
+            target = f"{base}.{node.module}" if node.module else base
+            out.add(target)
+            for a in node.names:
+                out.add(f"{target}.{a.name}")
+    return out
+
+
+def test_no_two_modules_import_each_other():
+    mods = {}
+    for dirpath, _, files in os.walk(ROOT):
+        for f in files:
+            if f.endswith(".py"):
+                rel = os.path.relpath(os.path.join(dirpath, f), os.path.dirname(ROOT))[:-3].replace(os.sep, ".")
+                name = rel[: -len(".__init__")] if rel.endswith(".__init__") else rel
+                package = name if f == "__init__.py" else name.rsplit(".", 1)[0]
+                mods[name] = _imports(os.path.join(dirpath, f), package)
+    pairs = [(a, b) for a in mods for b in mods if a < b and b in mods[a] and a in mods[b]
+             and not b.startswith(a + ".") and not a.startswith(b + ".")]
+    assert not pairs, f"modules importing each other at module level: {pairs}"
