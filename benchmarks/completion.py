@@ -58,6 +58,29 @@ def report(path: str, estimate_path: str | None = None) -> str:
     return "\n".join(lines)
 
 
+def field_run(img: str, lab: str, preset: str, field_path: str, case_name: str, planes: str):
+    """What a run on a field truth with the true in-plane motion of ``planes`` (a key of ``fem_truth.PLANES``) gives
+    every method: ``(cfg, prep, model, truth positions, slices, RunTargets, the copy's positions)``."""
+    from warpmpm.experiment.baselines import propagate
+    from warpmpm.experiment.case import prepare_case
+    from warpmpm.experiment.config import CaseConfig
+    from warpmpm.experiment.targets import run_targets
+    from warpmpm.experiment.truth import gt_for_model, make_ground_truth
+
+    cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=field_path, targets="gt-inplane",
+                     device="cpu", particle_step=2 if case_name == "phantom" else 1)
+    cfg = replace(cfg, slices=fem_truth.slices_through_pancreas(cfg, fem_truth.PLANES[planes]))
+    prep = prepare_case(cfg)
+    gt = make_ground_truth(prep, cfg)
+    model = prep.model(cfg.organs)
+    gt_pos = gt_for_model(gt, model)
+    slices = prep.resolve_slices(model, cfg.slices)
+    tg = run_targets(prep, gt, model, gt_pos, slices, cfg)
+    copy = tg.combined_mm if tg.combined_mm is not None else propagate(
+        model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]))
+    return cfg, prep, model, gt_pos, slices, tg, copy
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", default="mr,ct,phantom")
@@ -69,12 +92,7 @@ def main():
     if a.report:
         print(report(a.report, os.path.join(raw.RESULTS, "fem_truth_table.json")))
         return
-    from warpmpm.experiment.baselines import propagate
-    from warpmpm.experiment.case import prepare_case
-    from warpmpm.experiment.config import CaseConfig
     from warpmpm.experiment.organs import baseline_positions, organ_scores, true_distances
-    from warpmpm.experiment.targets import run_targets
-    from warpmpm.experiment.truth import gt_for_model, make_ground_truth
     from warpmpm.fields import write_field
     from warpmpm.images import write_case
     from warpmpm.solvers.completion import CompletionConfig, CompletionModel, complete
@@ -97,20 +115,10 @@ def main():
             path = os.path.join(work, f"{name}_{loads}_{n}.nii.gz")
             write_field(series.field(n), case.geometry, path)
             for label in a.planes.split(","):
-                cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=path, targets="gt-inplane",
-                                 device="cpu", particle_step=2 if name == "phantom" else 1)
-                cfg = replace(cfg, slices=fem_truth.slices_through_pancreas(cfg, fem_truth.PLANES[label]))
-                prep = prepare_case(cfg)
-                gt = make_ground_truth(prep, cfg)
-                model = prep.model(cfg.organs)
-                gt_pos = gt_for_model(gt, model)
-                slices = prep.resolve_slices(model, cfg.slices)
-                tg = run_targets(prep, gt, model, gt_pos, slices, cfg)
+                cfg, prep, model, gt_pos, slices, tg, copy = field_run(img, lab, preset, path, name, label)
                 idx, targets, axes = tg.idx, tg.targets_mm, tg.drive.axes
                 on = np.zeros(model.n, bool)
                 on[idx] = True
-                copy = tg.combined_mm if tg.combined_mm is not None else propagate(
-                    model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]))
                 methods = {"initial": (model.positions_mm, {}), "copy": (copy, {})}
                 methods |= {k: (v, {}) for k, v in baseline_positions(model, idx, targets, axes).items()}
                 for variant, c_cfg in (("completion", CompletionConfig()), ("completion_paper", CompletionConfig(materials="paper"))):

@@ -1,14 +1,18 @@
-"""Study: the completion solve against the copies on finite-element truths (one case, one load, plane sets)."""
+"""Study (one-off): variants of the completion solve's config against the copies on finite-element truths (one case,
+one load, plane sets); the figures quoted in docs/decisions/2026-12-03-completion-solve.md.
+
+    python benchmarks/studies/completion_study.py --case mr --loads breathing --planes sagittal+coronal,sagittal --variants default,off10
+"""
 
 import argparse
 import os
 import sys
 import time
-from dataclasses import replace
 
 import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+import completion as completion_bench  # noqa: E402
 import fem_truth  # noqa: E402
 
 
@@ -19,12 +23,7 @@ def main():
     p.add_argument("--planes", default="sagittal+coronal,sagittal")
     p.add_argument("--variants", default="default")
     a = p.parse_args()
-    from warpmpm.experiment.baselines import propagate
-    from warpmpm.experiment.case import prepare_case
-    from warpmpm.experiment.config import CaseConfig
     from warpmpm.experiment.organs import baseline_positions, organ_scores
-    from warpmpm.experiment.targets import run_targets
-    from warpmpm.experiment.truth import gt_for_model, make_ground_truth
     from warpmpm.fields import write_field
     from warpmpm.images import write_case
     from warpmpm.solvers.completion import CompletionConfig, CompletionModel, complete
@@ -41,24 +40,17 @@ def main():
     path = os.path.join(work, "t.nii.gz")
     write_field(series.field(n), case.geometry, path)
     variants = {"default": {}, "elastic_only": {"observed_first": False}, "no_off": {"off_plane_stiffness": 0.0},
-                "no_off_elastic": {"off_plane_stiffness": 0.0, "observed_first": False}, "cell6": {"cell_mm": 6.0},
-                "cell10": {"cell_mm": 10.0}, "off10": {"off_plane_stiffness": 10.0}, "off01": {"off_plane_stiffness": 0.1},
-                "paper": {"materials": "paper"}, "no_wall": {"hold_posterior_wall": False}, "off30": {"off_plane_stiffness": 30.0}, "off100": {"off_plane_stiffness": 100.0}, "trans": {"off_plane_motion": "translation"}, "u0": {"unseen_direction_stiffness": 0.0}, "t1": {"tissue_stiffness": 1.0}, "t10": {"tissue_stiffness": 10.0}, "t100": {"tissue_stiffness": 100.0}, "u1e-2": {"unseen_direction_stiffness": 1e-2}, "u1e-4": {"unseen_direction_stiffness": 1e-4}, "trans10": {"off_plane_motion": "translation", "off_plane_stiffness": 10.0}, "off100_nowall": {"off_plane_stiffness": 100.0, "hold_posterior_wall": False}, "off30_nowall": {"off_plane_stiffness": 30.0, "hold_posterior_wall": False}, "sup": {"cut_faces": ("superior",)}, "sup_off10": {"cut_faces": ("superior",), "off_plane_stiffness": 10.0}, "both": {"cut_faces": ("superior", "inferior")},
-                "face100": {"face_stiffness": 100.0}, "face1": {"face_stiffness": 1.0}, "c10": {"cell_mm": 10.0}, "c10both": {"cell_mm": 10.0, "cut_faces": ("superior", "inferior")}}
+                "off1": {"off_plane_stiffness": 1.0}, "off10": {"off_plane_stiffness": 10.0}, "cell6": {"cell_mm": 6.0},
+                "cell10": {"cell_mm": 10.0}, "paper": {"materials": "paper"}, "wall": {"hold_posterior_wall": True},
+                "trans": {"off_plane_motion": "translation"}, "u0": {"unseen_direction_stiffness": 0.0},
+                "u1e-3": {"unseen_direction_stiffness": 1e-3}, "t1": {"tissue_stiffness": 1.0}, "t10": {"tissue_stiffness": 10.0},
+                "t100": {"tissue_stiffness": 100.0}}
     for label in a.planes.split(","):
-        cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=path, targets="gt-inplane",
-                         device="cpu", particle_step=2 if a.case == "phantom" else 1)
-        cfg = replace(cfg, slices=fem_truth.slices_through_pancreas(cfg, fem_truth.PLANES[label]))
-        prep = prepare_case(cfg)
-        gt = make_ground_truth(prep, cfg)
-        model = prep.model(cfg.organs)
-        gt_pos = gt_for_model(gt, model)
-        slices = prep.resolve_slices(model, cfg.slices)
-        tg = run_targets(prep, gt, model, gt_pos, slices, cfg)
+        cfg, prep, model, gt_pos, slices, tg, copy = completion_bench.field_run(img, lab, preset, path,
+                                                                                 a.case, label)
         idx, targets, axes = tg.idx, tg.targets_mm, tg.drive.axes
         on = np.zeros(model.n, bool)
         on[idx] = True
-        copy = tg.combined_mm if tg.combined_mm is not None else propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]))
         rows = {"initial": model.positions_mm, "copy": copy}
         rows |= baseline_positions(model, idx, targets, axes)
         for v in a.variants.split(","):
