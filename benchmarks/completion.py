@@ -64,7 +64,7 @@ def field_run(img: str, lab: str, preset: str, field_path: str, case_name: str, 
     from warpmpm.experiment.baselines import propagate
     from warpmpm.experiment.case import prepare_case
     from warpmpm.experiment.config import CaseConfig
-    from warpmpm.experiment.targets import run_targets
+    from warpmpm.experiment.target_kinds import run_targets
     from warpmpm.experiment.truth import gt_for_model, make_ground_truth
 
     cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=field_path, targets="gt-inplane",

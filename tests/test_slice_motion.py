@@ -120,7 +120,7 @@ def test_the_ceiling_baselines_copy_each_organs_true_motion_and_combine_the_plan
     on the slice, and ``propagate_planes`` combines the planes: a truth that moves each organ by its own 3D
     translation is reproduced exactly by the combined sagittal + coronal copy, and by neither plane alone."""
     from warpmpm.experiment.baselines import propagate
-    from warpmpm.experiment.targets import truth_organ_affines
+    from warpmpm.experiment.target_kinds import truth_organ_affines
     from warpmpm.images import PRESETS, Case, Geometry
     from warpmpm.model import build_model
     from warpmpm.targets import combine_planes

@@ -4,7 +4,7 @@ baselines, one run at a time or as sweeps. It sits on top of the library and the
 - :mod:`~warpmpm.experiment.config`: :class:`CaseConfig`, typed and checked once.
 - :mod:`~warpmpm.experiment.case`: :class:`PreparedCase` (crop, full model, input <-> crop slice indices).
 - :mod:`~warpmpm.experiment.truth`: the GT of a run; :mod:`~warpmpm.experiment.capture`: the GT-warped image.
-- :mod:`~warpmpm.experiment.targets`: the ``--targets`` kinds; :mod:`~warpmpm.experiment.baselines`: the baselines.
+- :mod:`~warpmpm.experiment.target_kinds`: the ``--targets`` kinds; :mod:`~warpmpm.experiment.baselines`: the baselines.
 - :mod:`~warpmpm.experiment.run`: :func:`run_case`, :func:`run_prepared`; :mod:`~warpmpm.experiment.result`: what they return.
 - :mod:`~warpmpm.experiment.sweep`, :mod:`~warpmpm.experiment.multi_direction`: the paper's sweeps;
   :mod:`~warpmpm.experiment.tasks`: running their tasks; :mod:`~warpmpm.experiment.io`: safe output;

@@ -72,7 +72,7 @@ class CaseConfig:
     deformation: int = 1
     """Paper deformation type 1..8; under ``contact`` it numbers the scenario (>= 1)."""
     targets: TargetKind = "affine"
-    """Where the driven particles' targets come from (:mod:`warpmpm.experiment.targets`): the slice affine
+    """Where the driven particles' targets come from (:mod:`warpmpm.experiment.target_kinds`): the slice affine
     fitted to the GT, the GT's 3D positions (an upper bound no image gives), their in-plane part (the
     ceiling of any 2D registration), or registration of synthetic captured slices (organ-aware, or one
     affine per slice)."""

@@ -23,7 +23,7 @@ from .case import PreparedCase, prepare_case
 from .config import CaseConfig
 from .result import EstimateScores, RunResult, Scores
 from .tables import format_table
-from .targets import run_targets
+from .target_kinds import run_targets
 from .truth import gt_for_model, make_ground_truth
 
 __all__ = ["run_prepared", "check_device", "Progress", "size_report", "run_case"]
