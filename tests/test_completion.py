@@ -118,3 +118,24 @@ def test_tissue_seen_on_a_plane_carries_an_organ_no_plane_crosses(phantom):
     for o in model.organs:
         assert np.allclose(moved[0.0][o], 0.0, atol=1e-6)
         assert np.allclose(moved[100.0][o], t, atol=0.02 * np.linalg.norm(t)), (o, moved[100.0][o])
+
+
+def test_the_reduced_completion_equals_the_full_solve_on_an_affine_observation(phantom):
+    """The precomputed responses (ReducedCompletion) are the full solve's on any observation that is an affine motion of
+    each seen organ: a small rotation plus translation seen on a sagittal plane."""
+    from warpmpm.solvers.completion import ReducedCompletion
+
+    prep, model = phantom
+    s = prep.resolve_slices(model, f"sagittal:{int(np.median(model.voxel_ijk[model.organ_slice('pancreas'), 0]))}")
+    idx = driven_indices(model, s)
+    x = model.positions_mm
+    c = x.mean(0)
+    W = np.array([[0.0, -0.02, 0.01], [0.02, 0.0, -0.015], [-0.01, 0.015, 0.0]])
+    moved = x + (x - c) @ W.T + np.array([0.5, -2.0, -6.0])
+    P = np.tile(np.diag([0.0, 1.0, 1.0]), (len(idx), 1, 1))
+    cfg = CompletionConfig(rtol=1e-10, max_iterations=1000)
+    full = complete(CompletionModel(prep.case, "amos", model, cfg), idx, moved[idx], P, moved)
+    reduced = ReducedCompletion(CompletionModel(prep.case, "amos", model, cfg), idx, P, moved)
+    r = reduced.complete(moved[idx], moved)
+    assert np.abs(r.positions_mm - full.positions_mm).max() < 1e-3
+    assert np.abs(r.positions_mm - x).max() > 1.0  # it moved

@@ -63,7 +63,7 @@ from ..images import ORGANS, Case
 from ..model import PAPER_MATERIALS, ParticleModel
 from . import completion_kernels as ck
 
-__all__ = ["CompletionConfig", "CompletionModel", "CompletionResult", "complete"]
+__all__ = ["CompletionConfig", "CompletionModel", "CompletionResult", "ReducedCompletion", "complete", "slice_tissue_motion"]
 
 #: Nodes whose stiffness (diagonal) is below this fraction of the mean get a spring to no motion of that size.
 FRINGE = 0.05
@@ -503,3 +503,91 @@ def complete(cm: CompletionModel, idx: np.ndarray, targets_mm: np.ndarray, axes:
     rms = lambda r: float(np.sqrt(np.mean(np.sum(r * r, 1)))) if len(r) else float("nan")  # noqa: E731
     return CompletionResult(x + disp, info["converged"], info["iterations"], info["residual"], time.perf_counter() - t0,
                             rms(r_on), rms(r_off), {"setup_s": cm._plan["setup_s"], "unknowns": 3 * len(cm.active_nodes)})
+
+
+class ReducedCompletion:
+    """The completion of one plane set as a precomputed linear response, for frame after frame.
+
+    The equilibrium is linear in the observation. Each seen organ's observed displacements (its on-plane particles'
+    and the copy on its off-plane ones, along their projectors) are fitted, frame by frame, by an affine motion of the
+    organ (12 parameters, weighted by the springs' stiffness); the equilibrium's response to each of those 12 x organs
+    motions is solved once here (:meth:`CompletionModel.solve`, one CG solve each), so a frame is a small least-squares
+    fit and a matrix product. ``observed_first`` still returns the exact observation along the observed directions;
+    the affine fit only shapes what the planes do not show (a local push seen on a plane reaches the unseen parts only
+    through its organ's affine part)."""
+
+    def __init__(self, cm: CompletionModel, idx: np.ndarray, axes: np.ndarray | None, copy_like_mm: np.ndarray):
+        t0 = time.perf_counter()
+        model = cm.model
+        x = model.positions_mm
+        self.cm, self.idx = cm, np.asarray(idx, np.int64)
+        self.axes = np.tile(np.eye(3), (len(self.idx), 1, 1)) if axes is None else np.asarray(axes, np.float64)
+        organ_of = model.organ_index[self.idx]
+        on_plane = np.zeros(model.n, bool)
+        on_plane[self.idx] = True
+        self.groups, off_parts, off_P = [], [], []
+        for k in range(len(model.organs)):
+            sel = np.nonzero(organ_of == k)[0]
+            if len(sel) < MIN_SEEN:
+                continue
+            P = observed_projector(self.axes[sel])
+            rest = np.nonzero((model.organ_index == k) & ~on_plane)[0]
+            off_parts.append(rest)
+            off_P.append(np.broadcast_to(P, (len(rest), 3, 3)))
+            self.groups.append((sel, rest, P))
+        self.off = np.concatenate(off_parts) if off_parts else np.zeros(0, np.int64)
+        self.offP = np.concatenate(off_P) if off_P else np.zeros((0, 3, 3))
+        cm.observe(self.idx, self.axes, self.off, self.offP)
+        k_all = np.zeros(len(self.idx) + len(self.off))
+        k_all[cm._plan["use"]] = cm._plan["k"]
+        k_on, k_off = k_all[: len(self.idx)], k_all[len(self.idx):]
+        self.fits, responses = [], []
+        start = 0
+        for sel, rest, P in self.groups:
+            pts = np.concatenate([x[self.idx[sel]], x[rest]])
+            c0 = pts.mean(0)
+            L = max(float(np.ptp(pts, 0).max()) / 2, 1.0)
+            phi = self._phi((pts - c0) / L)  # (n, 3, 12)
+            Pg = np.concatenate([self.axes[sel], np.broadcast_to(P, (len(rest), 3, 3))])
+            kg = np.concatenate([k_on[sel], k_off[start:start + len(rest)]])
+            PPhi = np.einsum("nij,njm->nim", Pg, phi)
+            G = np.einsum("n,nim,nil->ml", kg, PPhi, PPhi)
+            self.fits.append((sel, slice(start, start + len(rest)), c0, L, phi, PPhi, kg, np.linalg.pinv(G, rcond=1e-9)))
+            for m in range(12):  # the response to this organ moving by mode m alone
+                d_on = np.zeros((len(self.idx), 3))
+                d_off = np.zeros((len(self.off), 3))
+                d_on[sel] = phi[: len(sel), :, m]
+                d_off[start:start + len(rest)] = phi[len(sel):, :, m]
+                cm._u = None
+                u, info = cm.solve(d_on, d_off)
+                if not info["converged"]:
+                    raise SimulationError(f"ReducedCompletion: the response to mode {m} did not converge (residual {info['residual']:.1e})")
+                responses.append(cm.particle_displacements(u))
+            start += len(rest)
+        self.R = np.stack(responses, -1) if responses else np.zeros((model.n, 3, 0))  # (N, 3, 12 x organs)
+        self.setup_s = time.perf_counter() - t0
+
+    @staticmethod
+    def _phi(xs: np.ndarray) -> np.ndarray:
+        phi = np.zeros((len(xs), 3, 12))
+        for a in range(3):
+            phi[:, a, a] = 1.0
+            phi[:, a, 3 + 3 * a:6 + 3 * a] = xs
+        return phi
+
+    def complete(self, targets_mm: np.ndarray, copy_mm: np.ndarray) -> CompletionResult:
+        """One frame of the plane set: the particles' positions (mm) from the on-plane targets and the copy."""
+        t0 = time.perf_counter()
+        x = self.cm.model.positions_mm
+        d_on = targets_mm - x[self.idx]
+        d_off = copy_mm[self.off] - x[self.off]
+        coef = []
+        for sel, off_sl, c0, L, phi, PPhi, kg, Ginv in self.fits:
+            d = np.concatenate([d_on[sel], d_off[off_sl]])
+            coef.append(Ginv @ np.einsum("n,nim,ni->m", kg, PPhi, d))
+        disp = self.R @ np.concatenate(coef) if coef else np.zeros_like(x)
+        if self.cm.config.observed_first:
+            A, O = self.axes, self.offP
+            disp[self.idx] = np.einsum("nij,nj->ni", A, d_on) + disp[self.idx] - np.einsum("nij,nj->ni", A, disp[self.idx])
+            disp[self.off] = np.einsum("nij,nj->ni", O, d_off) + disp[self.off] - np.einsum("nij,nj->ni", O, disp[self.off])
+        return CompletionResult(x + disp, True, 0, float("nan"), time.perf_counter() - t0, info={"setup_s": self.setup_s})
