@@ -117,7 +117,7 @@ def series_run(a):
                     model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]))
                 r = complete(cm, tg.idx, tg.targets_mm, tg.drive.axes, copy)
                 if reduced is None:
-                    reduced = ReducedCompletion(CompletionModel(prep.case, preset, model), tg.idx, tg.drive.axes, copy)
+                    reduced = ReducedCompletion(CompletionModel(prep.case, preset, model), tg.idx, tg.drive.axes)
                     print(f"{name} {label}: reduced completion set up in {reduced.setup_s:.1f} s ({reduced.R.shape[-1]} responses)")
                 rr = reduced.complete(tg.targets_mm, copy)
                 on = np.zeros(model.n, bool)

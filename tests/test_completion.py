@@ -135,7 +135,7 @@ def test_the_reduced_completion_equals_the_full_solve_on_an_affine_observation(p
     P = np.tile(np.diag([0.0, 1.0, 1.0]), (len(idx), 1, 1))
     cfg = CompletionConfig(rtol=1e-10, max_iterations=1000)
     full = complete(CompletionModel(prep.case, "amos", model, cfg), idx, moved[idx], P, moved)
-    reduced = ReducedCompletion(CompletionModel(prep.case, "amos", model, cfg), idx, P, moved)
+    reduced = ReducedCompletion(CompletionModel(prep.case, "amos", model, cfg), idx, P)
     r = reduced.complete(moved[idx], moved)
     assert np.abs(r.positions_mm - full.positions_mm).max() < 1e-3
     assert np.abs(r.positions_mm - x).max() > 1.0  # it moved

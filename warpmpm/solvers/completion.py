@@ -43,9 +43,9 @@ Not modelled yet, and what it costs (measured on the finite-element truths, ``be
 ``docs/decisions/2026-12-03-completion-solve.md``): sliding between organs and between organs and wall (the tissue is
 bonded: a held back drags the organs beside it, hence ``hold_posterior_wall=False``), and the loads that move the body
 (breathing enters through the diaphragm; here motion enters only through the observed organs and decays away from
-them, so an organ no plane crosses moves too little: MR sample left kidney 2.56 mm against 4.83 for the nearest seen
-organ's copy, CT sample 4.84 against 4.33). Through-plane motion of a single plane comes out worse than the copy's
-"no through-plane motion" (MR sample, sagittal only: pancreas 1.58 mm against 0.37).
+them, so an organ far from the seen ones moves too little: CT sample left kidney 4.84 mm against 4.33 for the nearest
+seen organ's motion, while the MR sample's is 2.34 against 4.83). Through-plane motion of a single plane comes out
+worse than the copy's "no through-plane motion" (MR sample, sagittal only: pancreas 0.62 mm against 0.37).
 """
 
 from __future__ import annotations
@@ -63,7 +63,8 @@ from ..images import ORGANS, Case
 from ..model import PAPER_MATERIALS, ParticleModel
 from . import completion_kernels as ck
 
-__all__ = ["CompletionConfig", "CompletionModel", "CompletionResult", "ReducedCompletion", "complete", "slice_tissue_motion"]
+__all__ = ["CompletionConfig", "CompletionModel", "CompletionResult", "ReducedCompletion", "complete", "seen_parts",
+           "slice_tissue_motion"]
 
 #: Nodes whose stiffness (diagonal) is below this fraction of the mean get a spring to no motion of that size.
 FRINGE = 0.05
@@ -104,7 +105,7 @@ class CompletionConfig:
     hold_posterior_wall: bool = False
     """Also hold the most posterior body point of every column where the body ends on the couch. Off by default:
     without sliding between organs and wall, a held wall drags the organs beside it (phantom, sagittal + coronal:
-    stomach 0.47 -> 4.52 mm, MR left kidney 2.47 -> 2.56 mm); bone is always held."""
+    stomach 0.47 -> 4.52 mm, MR left kidney 2.34 -> 2.56 mm); bone is always held."""
     observed_first: bool = True
     """Return the observed motion for the seen organs' particles along their planes' directions (module docstring)."""
     rtol: float = 1e-6
@@ -457,6 +458,39 @@ def observed_projector(axes: np.ndarray) -> np.ndarray:
     return (V[:, keep] @ V[:, keep].T)
 
 
+def seen_parts(model: ParticleModel, idx: np.ndarray, axes: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per organ the planes see (at least :data:`MIN_SEEN` of its particles in ``idx``): the positions in ``idx`` of its
+    particles on a plane, the indices of its other particles, and the projector of every direction its planes measure."""
+    organ_of = model.organ_index[idx]
+    on_plane = np.zeros(model.n, bool)
+    on_plane[idx] = True
+    out = []
+    for k in range(len(model.organs)):
+        sel = np.nonzero(organ_of == k)[0]
+        if len(sel) >= MIN_SEEN:
+            out.append((sel, np.nonzero((model.organ_index == k) & ~on_plane)[0], observed_projector(axes[sel])))
+    return out
+
+
+def _off_plane(parts: list) -> tuple[np.ndarray, np.ndarray]:
+    """The seen organs' off-plane particle indices and their projectors, in the order of :func:`seen_parts`."""
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros((0, 3, 3))
+    return (np.concatenate([rest for _, rest, _ in parts]),
+            np.concatenate([np.broadcast_to(P, (len(rest), 3, 3)) for _, rest, P in parts]))
+
+
+def _project(P: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.einsum("nij,nj->ni", P, v)
+
+
+def _keep_observed(disp: np.ndarray, idx: np.ndarray, axes: np.ndarray, d_on: np.ndarray, off: np.ndarray, offP: np.ndarray,
+                   d_off: np.ndarray) -> None:
+    """``observed_first``: along the observed directions the seen particles take their observation (in place)."""
+    disp[idx] += _project(axes, d_on - disp[idx])
+    disp[off] += _project(offP, d_off - disp[off])
+
+
 def complete(cm: CompletionModel, idx: np.ndarray, targets_mm: np.ndarray, axes: np.ndarray | None,
              copy_mm: np.ndarray, tissue_motion=None) -> CompletionResult:
     """One frame: the model's particles completed from the observed displacements of the particles ``idx`` on the
@@ -467,23 +501,9 @@ def complete(cm: CompletionModel, idx: np.ndarray, targets_mm: np.ndarray, axes:
     x = model.positions_mm
     idx = np.asarray(idx, np.int64)
     axes = np.tile(np.eye(3), (len(idx), 1, 1)) if axes is None else np.asarray(axes, np.float64)
-    organ_of = model.organ_index[idx]
-    off_parts, off_P, off_t = [], [], []
     d_on = targets_mm - x[idx]
-    on_plane = np.zeros(model.n, bool)
-    on_plane[idx] = True
-    for k in range(len(model.organs)):
-        sel = organ_of == k
-        if np.count_nonzero(sel) < MIN_SEEN:
-            continue
-        P = observed_projector(axes[sel])
-        rest = np.nonzero((model.organ_index == k) & ~on_plane)[0]
-        off_parts.append(rest)
-        off_P.append(np.broadcast_to(P, (len(rest), 3, 3)))
-        t = np.linalg.pinv(axes[sel].sum(0), rcond=1e-6) @ np.einsum("nij,nj->i", axes[sel], d_on[sel])  # observed translation
-        off_t.append(np.broadcast_to(t, (len(rest), 3)))
-    off = np.concatenate(off_parts) if off_parts else np.zeros(0, np.int64)
-    offP = np.concatenate(off_P) if off_P else np.zeros((0, 3, 3))
+    parts = seen_parts(model, idx, axes)
+    off, offP = _off_plane(parts)
     t_idx, t_d, t_P = None, None, None
     if tissue_motion is not None and cm.config.tissue_stiffness > 0:
         organ_codes = [TISSUE_CODE[o] for o in ORGANS if o in TISSUE_CODE]
@@ -492,14 +512,16 @@ def complete(cm: CompletionModel, idx: np.ndarray, targets_mm: np.ndarray, axes:
         t_idx = around[sel]
     cm.observe(idx, axes, off, offP, t_idx, t_P)
     d_off = copy_mm[off] - x[off]
-    pull = np.concatenate(off_t) if (off_t and cm.config.off_plane_motion == "translation") else d_off
+    pull = d_off
+    if parts and cm.config.off_plane_motion == "translation":  # each organ's observed translation
+        pull = np.concatenate([np.broadcast_to(np.linalg.pinv(axes[sel].sum(0), rcond=1e-6) @ _project(axes[sel], d_on[sel]).sum(0),
+                                               (len(rest), 3)) for sel, rest, _ in parts])
     u, info = cm.solve(d_on, pull, t_d)
     disp = cm.particle_displacements(u)
-    r_on = np.einsum("nij,nj->ni", axes, disp[idx] - d_on)
-    r_off = np.einsum("nij,nj->ni", offP, disp[off] - pull)
+    r_on = _project(axes, disp[idx] - d_on)
+    r_off = _project(offP, disp[off] - pull)
     if cm.config.observed_first:
-        disp[idx] = np.einsum("nij,nj->ni", axes, d_on) + disp[idx] - np.einsum("nij,nj->ni", axes, disp[idx])
-        disp[off] = np.einsum("nij,nj->ni", offP, d_off) + disp[off] - np.einsum("nij,nj->ni", offP, disp[off])
+        _keep_observed(disp, idx, axes, d_on, off, offP, d_off)
     rms = lambda r: float(np.sqrt(np.mean(np.sum(r * r, 1)))) if len(r) else float("nan")  # noqa: E731
     return CompletionResult(x + disp, info["converged"], info["iterations"], info["residual"], time.perf_counter() - t0,
                             rms(r_on), rms(r_off), {"setup_s": cm._plan["setup_s"], "unknowns": 3 * len(cm.active_nodes)})
@@ -516,27 +538,14 @@ class ReducedCompletion:
     the affine fit only shapes what the planes do not show (a local push seen on a plane reaches the unseen parts only
     through its organ's affine part)."""
 
-    def __init__(self, cm: CompletionModel, idx: np.ndarray, axes: np.ndarray | None, copy_like_mm: np.ndarray):
+    def __init__(self, cm: CompletionModel, idx: np.ndarray, axes: np.ndarray | None):
         t0 = time.perf_counter()
         model = cm.model
         x = model.positions_mm
         self.cm, self.idx = cm, np.asarray(idx, np.int64)
         self.axes = np.tile(np.eye(3), (len(self.idx), 1, 1)) if axes is None else np.asarray(axes, np.float64)
-        organ_of = model.organ_index[self.idx]
-        on_plane = np.zeros(model.n, bool)
-        on_plane[self.idx] = True
-        self.groups, off_parts, off_P = [], [], []
-        for k in range(len(model.organs)):
-            sel = np.nonzero(organ_of == k)[0]
-            if len(sel) < MIN_SEEN:
-                continue
-            P = observed_projector(self.axes[sel])
-            rest = np.nonzero((model.organ_index == k) & ~on_plane)[0]
-            off_parts.append(rest)
-            off_P.append(np.broadcast_to(P, (len(rest), 3, 3)))
-            self.groups.append((sel, rest, P))
-        self.off = np.concatenate(off_parts) if off_parts else np.zeros(0, np.int64)
-        self.offP = np.concatenate(off_P) if off_P else np.zeros((0, 3, 3))
+        self.groups = seen_parts(model, self.idx, self.axes)
+        self.off, self.offP = _off_plane(self.groups)
         cm.observe(self.idx, self.axes, self.off, self.offP)
         k_all = np.zeros(len(self.idx) + len(self.off))
         k_all[cm._plan["use"]] = cm._plan["k"]
@@ -587,7 +596,5 @@ class ReducedCompletion:
             coef.append(Ginv @ np.einsum("n,nim,ni->m", kg, PPhi, d))
         disp = self.R @ np.concatenate(coef) if coef else np.zeros_like(x)
         if self.cm.config.observed_first:
-            A, O = self.axes, self.offP
-            disp[self.idx] = np.einsum("nij,nj->ni", A, d_on) + disp[self.idx] - np.einsum("nij,nj->ni", A, disp[self.idx])
-            disp[self.off] = np.einsum("nij,nj->ni", O, d_off) + disp[self.off] - np.einsum("nij,nj->ni", O, disp[self.off])
+            _keep_observed(disp, self.idx, self.axes, d_on, self.off, self.offP, d_off)
         return CompletionResult(x + disp, True, 0, float("nan"), time.perf_counter() - t0, info={"setup_s": self.setup_s})
