@@ -373,6 +373,25 @@ def test_a_volume_registration_that_fell_back_is_marked_in_the_table():
     assert "volume_registration (FAILED: fell back to no motion)" in format_table(out)
 
 
+def test_a_completion_that_did_not_converge_is_marked_in_the_table():
+    from warpmpm.experiment.result import EstimateScores, RunResult, Scores
+    from warpmpm.experiment.tables import format_table
+
+    s = dict(error_mm=1.0, p95_mm=2.0, max_mm=3.0, dice=0.5, n=10)
+    est = EstimateScores(**s, steps=10, wall_s=1.0, converged=True, reason="threshold", rms_residual_mm=0.1, rel_residual=0.01,
+                         ms_per_step=1.0)
+
+    def run(converged):
+        c = Scores(**s, info={"converged": converged, "residual": 3e-3, "wall_s": 1.0})
+        out = RunResult(case="c", organs="p", slices=["axial:1"], protocol="paper", deformation=1, targets="affine", device="cpu",
+                        n_particles={"pancreas": 10}, n_driven=2, excluded_driven=False, solver={}, gains={}, gt={},
+                        results={"completion": c, "estimate": est})
+        return format_table(out)
+
+    assert "completion (NOT converged: residual 3.0e-03)" in run(False)
+    assert "NOT converged: residual" not in run(True)
+
+
 # 10. ground truths that mislead ------------------------------------------------------------------
 
 def test_a_volume_registration_that_fails_on_an_expansion_is_flagged():

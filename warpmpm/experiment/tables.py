@@ -30,6 +30,8 @@ def format_table(out: RunResult) -> str:
         label = name
         if j.get("fallback_to_identity"):
             label += " (FAILED: fell back to no motion)"
+        elif name == "completion" and not j.get("converged", True):
+            label += f" (NOT converged: residual {j['residual']:.1e})"
         elif j.get("uncertain"):
             label += f" (uncertain: two registrations disagree by {j['disagreement_mm']:.1f} mm)"
         rows.append(f"| {label} | {r.error_mm:.2f} | {r.error_offslice_mm:.2f} | {r.p95_mm:.2f} | {r.dice:.3f} | {steps} | {wall} |")
