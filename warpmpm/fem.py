@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .elastic_amg import elasticity_preconditioner, rigid_body_modes
 from .errors import InputError
 from .model import ParticleModel
 
@@ -123,33 +124,20 @@ def _amg_cg(K, b, points, nodal_dofs, free, rtol: float = 1e-10) -> np.ndarray:
     """Solve the condensed system ``K x = b`` (unknowns ``free`` of the full system) by conjugate gradients
     preconditioned with smoothed-aggregation multigrid whose near-null space is the six rigid motions."""
     try:
-        import pyamg
+        import pyamg  # noqa: F401
     except ImportError as exc:
         raise InputError("a FEM reference this large needs pyamg (pip install pyamg); "
                          f"or use a smaller block / refinement (at most {DIRECT_MAX_DOFS} unknowns solve directly)") from exc
     from scipy.sparse.linalg import cg
 
     n_nodes = points.shape[0]
-    c = points - points.mean(0)
-    rbm = np.zeros((3 * n_nodes, 6))
     comp = np.empty(3 * n_nodes, dtype=np.int64)
     node = np.empty(3 * n_nodes, dtype=np.int64)
     for k in range(3):
         comp[nodal_dofs[k]] = k
         node[nodal_dofs[k]] = np.arange(n_nodes)
-    for k in range(3):
-        rbm[comp == k, k] = 1.0
-    # rotations about x, y, z: (0, -z, y), (z, 0, -x), (-y, x, 0)
-    xyz = c[node]
-    for j, (a, b_) in enumerate(((1, 2), (2, 0), (0, 1))):
-        col = np.zeros(3 * n_nodes)
-        col[comp == a] = -xyz[comp == a, b_]
-        col[comp == b_] = xyz[comp == b_, a]
-        rbm[:, 3 + j] = col
-    B = rbm[free]
-    ml = pyamg.smoothed_aggregation_solver(K.tocsr(), B=B, strength=("symmetric", {"theta": 0.0}), max_coarse=2000,
-                                          coarse_solver="splu")  # the default dense pseudo-inverse of a ~10k coarse level takes minutes
-    M = ml.aspreconditioner(cycle="V")
+    B = rigid_body_modes(points)[3 * node + comp][free]  # the system's unknowns in scikit-fem's order
+    M, _ = elasticity_preconditioner(K.tocsr(), B, max_coarse=2000)
     x, info = cg(K, b, rtol=rtol, atol=0.0, maxiter=5000, M=M)
     if info != 0:
         from .errors import SimulationError

@@ -66,6 +66,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .elastic_amg import elasticity_preconditioner, rigid_body_modes
 from .errors import InputError, SimulationError
 from .anatomy import ANCHOR_LABELS, LIVER_LABELS, TISSUE_RANGES, TISSUES, TissueRange, body_mask, tissue_map  # noqa: F401 (re-exported)
 from .anatomy import TISSUE_CODE as _T
@@ -219,21 +220,8 @@ class ElasticSolver:
 
             self._lu = splu(self.Kff.tocsc())
         else:
-            import pyamg
-
-            B = None
-            if points_mm is not None:
-                c = points_mm - points_mm.mean(0)
-                rbm = np.zeros((n, 6))
-                for k in range(3):
-                    rbm[k::3, k] = 1.0
-                for j, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):
-                    rbm[a::3, 3 + j] = -c[:, b]
-                    rbm[b::3, 3 + j] = c[:, a]
-                B = rbm[self.free]
-            self._ml = pyamg.smoothed_aggregation_solver(self.Kff, B=B, strength=("symmetric", {"theta": 0.0}),
-                                                        max_coarse=2000, coarse_solver="splu")
-            self._M = self._ml.aspreconditioner(cycle="V")
+            B = None if points_mm is None else rigid_body_modes(points_mm)[self.free]
+            self._M, self._ml = elasticity_preconditioner(self.Kff, B, max_coarse=2000)
 
     def solve(self, f: np.ndarray, prescribed: np.ndarray, x0: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
         """Solution ``u`` (all unknowns) with ``u[fixed] = prescribed`` and load ``f``, and ``{residual, iterations}``:

@@ -58,6 +58,7 @@ import numpy as np
 import warp as wp
 
 from ..anatomy import TISSUE_CODE, TISSUES, nominal_material, tissue_map
+from ..elastic_amg import elasticity_preconditioner, rigid_body_modes
 from ..errors import InputError, SimulationError
 from ..images import ORGANS, Case
 from ..model import PAPER_MATERIALS, ParticleModel
@@ -324,7 +325,6 @@ class CompletionModel:
         ``off_plane`` (the seen organs' other particles) with theirs, ``tissue`` (indices of material points of the
         tissue around the organs lying on a plane) with theirs. Assembles the system and its preconditioner; a later
         call with the same sets keeps them."""
-        import pyamg
         import scipy.sparse as sp
 
         tissue = np.zeros(0, np.int64) if tissue is None else np.asarray(tissue, np.int64)
@@ -356,16 +356,8 @@ class CompletionModel:
         if cfg.unseen_direction_stiffness > 0 and np.abs(Q).max() > 1e-6:
             A = A + sp.kron(sp.identity(na), cfg.unseen_direction_stiffness * float(self.K.diagonal().mean()) * Q, format="csr")
         A = A.tocsr()
-        c = self.node_positions_mm()
-        c = c - c.mean(0)
-        B = np.zeros((3 * na, 6))
-        for a in range(3):
-            B[a::3, a] = 1.0
-        for j, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):
-            B[a::3, 3 + j] = -c[:, b]
-            B[b::3, 3 + j] = c[:, a]
-        ml = pyamg.smoothed_aggregation_solver(sp.bsr_matrix(A, blocksize=(3, 3)), B=B, strength=("symmetric", {"theta": 0.0}), max_coarse=1500, coarse_solver="splu")
-        self._plan = {"key": key, "A": A, "M": ml.aspreconditioner(cycle="V"), "idx": idx, "k": k, "P": P,
+        M, ml = elasticity_preconditioner(sp.bsr_matrix(A, blocksize=(3, 3)), rigid_body_modes(self.node_positions_mm()), max_coarse=1500)
+        self._plan = {"key": key, "A": A, "M": M, "idx": idx, "k": k, "P": P,
                       "x": wp.array(xs.astype(np.float32), dtype=wp.vec3, device=self.device), "use": use,
                       "n_on": int(np.count_nonzero(use[: len(on_plane)])), "setup_s": time.perf_counter() - t0,
                       "levels": len(ml.levels), "nnz": int(A.nnz)}
