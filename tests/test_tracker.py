@@ -109,7 +109,16 @@ def test_bad_cine_folders_are_named(tmp_path, tiny_case):
 
     os.remove(tmp_path / "a.nii.gz")
     sitk.WriteImage(img[0:1, :, :], str(tmp_path / "edge.nii.gz"))  # the first sagittal slice: no organ there
-    with pytest.raises(InputError, match="edge.nii.gz: its plane does not cross"):
+    with pytest.raises(InputError, match="edge.nii.gz: its plane lies .* mm from the nearest organ .*crosses the planning scan "
+                       "but not the organs"):
+        Tracker(tiny_case, read_cine(str(tmp_path)), TrackerConfig(solver=SolverConfig(device="cpu")))
+    # a frame 40 mm beside the scan (a cine of another session or in other coordinates): the distance is named
+    off = img[0:1, :, :]
+    d = np.asarray(off.GetDirection()).reshape(3, 3)
+    off.SetOrigin(tuple(np.asarray(off.GetOrigin()) - 40.0 * d[:, 0]))
+    os.remove(tmp_path / "edge.nii.gz")
+    sitk.WriteImage(off, str(tmp_path / "off.nii.gz"))
+    with pytest.raises(InputError, match=r"off.nii.gz: .* does not cross the planning scan either: it lies 40.0 mm outside it"):
         Tracker(tiny_case, read_cine(str(tmp_path)), TrackerConfig(solver=SolverConfig(device="cpu")))
 
 

@@ -1,9 +1,19 @@
 """Cine MR frames: reading a series of 2D frames, their planes in the scanner's space, grouping by plane.
 
-A frame is a 2D image placed in 3D: a NIfTI / MHA / NRRD image one voxel thick (its geometry places the
-plane; frames are ordered by file name) or a 2D DICOM file (ImagePositionPatient / ImageOrientationPatient
-place it; frames are ordered by acquisition time, then instance number). Any plane orientation, oblique
-included. Frames of the same plane (same normal and position, to 0.5 mm) form one plane's stream:
+A frame is a 2D image placed in 3D, in any of these forms:
+
+- an Elekta Unity cine file (``.bin``: the vendor's .NET binary serialisation, read by :mod:`warpmpm.nrbf`).
+  Its ``VolumeData`` holds the pixels (unsigned 16-bit, rows x columns), the world position of the first pixel
+  (``Origin``, mm), the row and column direction cosines, the pixel size and the slice thickness, and the
+  acquisition clock (``Elapsed100NanosecondInterval``: 100 ns ticks since 1900-01-01 UTC); the same fields as
+  the DICOM export of the same frame (ImagePositionPatient, ImageOrientationPatient, PixelSpacing,
+  SliceThickness), checked on real Unity frames;
+- a 2D DICOM MR file (Unity's or MRIdian's export; ImagePositionPatient / ImageOrientationPatient place it);
+  its time is AcquisitionDateTime, AcquisitionTime or ContentTime, else the time Unity writes into its export
+  file names (``..._698.4829_(ms).dcm``), else its instance number;
+- a NIfTI / MHA / NRRD image one voxel thick (its geometry places the plane; frames are ordered by file name).
+
+Frames are ordered by acquisition time. Any plane orientation, oblique included. Frames of the same plane (same normal and position, to 0.5 mm) form one plane's stream:
 one plane on MRIdian (sagittal), interleaved sagittal / coronal on Unity.
 
 In-plane coordinates of a frame are the offsets ``(u, v) = ((x - c) . e_u, (x - c) . e_v)`` in mm from its
@@ -13,6 +23,7 @@ centre ``c``, along its two in-plane image axes: the convention of :mod:`warpmpm
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,9 +32,12 @@ import SimpleITK as sitk
 from .errors import InputError
 from .images import check_file_integrity
 
-__all__ = ["IMAGE_SUFFIXES", "CineFrame", "read_cine"]
+__all__ = ["IMAGE_SUFFIXES", "CineFrame", "read_cine", "read_frame", "cine_info", "plane_name"]
 
-IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".dcm")
+IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".dcm", ".bin")
+
+#: a time in an export's file name, as Unity writes it: ``Frame_ID_<uuid>_698.4829_(ms).dcm``
+_NAME_TIME = re.compile(r"_(\d+(?:\.\d+)?)_\(ms\)", re.IGNORECASE)
 
 
 @dataclass
@@ -34,7 +48,8 @@ class CineFrame:
         path: the file. image: the frame as a 3D SimpleITK image one voxel thick. time_s: acquisition time
         (s, from the first frame). plane: the index of its plane in the series. thin_axis: the image axis of
         size 1. normal, e_u, e_v: unit world vectors (the slice normal and the in-plane image axes).
-        centre_mm: the world centre of the frame. thickness_mm: the slice thickness.
+        centre_mm: the world centre of the frame. thickness_mm: the slice thickness. source: where it came
+        from ("unity-bin", "dicom" or "image"). time_from: what its acquisition time was read from.
     """
 
     path: str
@@ -47,6 +62,9 @@ class CineFrame:
     centre_mm: np.ndarray
     thickness_mm: float
     plane: int = 0
+    source: str = "image"
+    time_from: str = "file order"
+    instance: int = 0
 
     def slice_2d(self, volume_image: sitk.Image | None = None, interpolator=sitk.sitkLinear) -> sitk.Image:
         """The frame (or ``volume_image`` resampled on the frame's plane) as a 2D image in centred in-plane mm."""
@@ -73,7 +91,8 @@ class CineFrame:
         return np.outer(self.e_u, self.e_u) + np.outer(self.e_v, self.e_v)
 
 
-def _frame(path: str, image: sitk.Image, time_s: float) -> CineFrame:
+def _frame(path: str, image: sitk.Image, time_s: float, thickness_mm: float | None = None, source: str = "image",
+           time_from: str = "file order") -> CineFrame:
     if image.GetDimension() == 2:
         image = sitk.JoinSeries(image)
     if image.GetDimension() != 3:
@@ -83,48 +102,203 @@ def _frame(path: str, image: sitk.Image, time_s: float) -> CineFrame:
     size = image.GetSize()
     thin = [a for a in range(3) if size[a] == 1]
     if len(thin) != 1:
-        raise InputError(f"cine frame {path} is {size[0]} x {size[1]} x {size[2]} voxels; a frame must be one voxel thick")
+        raise InputError(f"cine frame {path} is {size[0]} x {size[1]} x {size[2]} voxels; a frame must be one voxel thick "
+                         "(a multi-frame file: export the cine as one file per frame)")
     a = thin[0]
     d = np.asarray(image.GetDirection()).reshape(3, 3)
     u, v = [b for b in range(3) if b != a]
     arr = sitk.GetArrayViewFromImage(image)
     if not np.all(np.isfinite(arr)):
         raise InputError(f"cine frame {path} holds non-finite (NaN or Inf) pixels")
+    thickness = float(image.GetSpacing()[a]) if thickness_mm is None else float(thickness_mm)
+    if not (np.isfinite(thickness) and thickness > 0):
+        raise InputError(f"cine frame {path} has a slice thickness of {thickness} mm; a positive thickness is required")
     centre_idx = (np.asarray(size, dtype=np.float64) - 1.0) / 2.0
     centre = np.asarray(image.TransformContinuousIndexToPhysicalPoint(centre_idx.tolist()))
     return CineFrame(path, image, time_s, a, d[:, a] / np.linalg.norm(d[:, a]), d[:, u], d[:, v], centre,
-                     float(image.GetSpacing()[a]))
+                     thickness, source=source, time_from=time_from)
+
+
+def _placed_image(pixels: np.ndarray, first_pixel_mm, row_direction, column_direction, spacing_mm) -> sitk.Image:
+    """A (rows, columns) pixel array placed as DICOM places it, as a 3D image one voxel thick.
+
+    ``row_direction``: the world direction along a row (column index increasing), ``column_direction``: down a column
+    (row index increasing); ``spacing_mm``: (along a row, along a column).
+    """
+    r = np.asarray(row_direction, dtype=np.float64)
+    c = np.asarray(column_direction, dtype=np.float64)
+    n = np.cross(r, c)
+    image = sitk.GetImageFromArray(np.ascontiguousarray(pixels[None]).astype(np.float32))
+    image.SetOrigin(tuple(float(x) for x in first_pixel_mm))
+    image.SetSpacing((float(spacing_mm[0]), float(spacing_mm[1]), 1.0))
+    image.SetDirection(tuple(np.stack([r, c, n], axis=1).ravel().tolist()))
+    return image
+
+
+def _unity_frame(path: str) -> CineFrame:
+    from .nrbf import NrbfObject, read_nrbf
+
+    with open(path, "rb") as fh:
+        root = read_nrbf(fh.read(), f"cine frame {path}")
+    try:
+        v = root.field("TwoDSlicedata") if isinstance(root, NrbfObject) and root.class_name.endswith("MotionManagementResultData") else root
+        if not isinstance(v, NrbfObject) or not v.class_name.endswith("VolumeData"):
+            raise KeyError(f"its root is {getattr(root, 'class_name', type(root).__name__)}, not a Unity cine frame")
+        dim, vox, ori = v.field("Dimension"), v.field("VoxelSize"), v.field("Orientation")
+        rows, cols, slices = (int(dim.field(k)) for k in ("Rows", "Columns", "Slices"))
+
+        def point(p):
+            return np.array([float(p.field(k)) for k in ("X", "Y", "Z")])
+
+        origin = point(v.field("Origin"))
+        row_dir, col_dir = point(ori.field("RowDirectionCosines")), point(ori.field("ColumnDirectionCosines"))
+        spacing = (float(vox.field("XInmm")), float(vox.field("YInmm")))
+        thickness = float(vox.field("ZInmm"))
+        nbytes, ncomp = int(v.field("BytesPerVoxel")), int(v.field("NoOfComponents"))
+        unsigned = bool(v.field("Unsigned"))
+        data = v.field("Data")
+        ticks = v.get("<Elapsed100NanosecondInterval>k__BackingField")
+    except KeyError as exc:
+        raise InputError(f"cine frame {path}: not an Elekta Unity cine frame ({exc.args[0]})") from None
+    if slices != 1 or ncomp != 1 or nbytes not in (1, 2, 4):
+        raise InputError(f"cine frame {path}: {rows} x {cols} x {slices} voxels of {ncomp} component(s), {nbytes} bytes each; "
+                         "a single-slice scalar frame is required")
+    dtype = np.dtype(f"<{'u' if unsigned else 'i'}{nbytes}")
+    if not isinstance(data, np.ndarray) or data.nbytes != rows * cols * nbytes:
+        got = data.nbytes if isinstance(data, np.ndarray) else 0
+        raise InputError(f"cine frame {path}: its pixel data holds {got} bytes, {rows} x {cols} pixels of {nbytes} bytes need "
+                         f"{rows * cols * nbytes}")
+    for name, d in (("row", row_dir), ("column", col_dir)):
+        if not (np.all(np.isfinite(d)) and abs(np.linalg.norm(d) - 1) < 1e-3):
+            raise InputError(f"cine frame {path}: its {name} direction {d.tolist()} is not a unit vector")
+    if abs(row_dir @ col_dir) > 1e-3:
+        raise InputError(f"cine frame {path}: its row and column directions are not perpendicular")
+    if not (np.all(np.isfinite(origin)) and all(np.isfinite(s) and s > 0 for s in spacing)):
+        raise InputError(f"cine frame {path}: its origin {origin.tolist()} or pixel size {spacing} is not usable")
+    pixels = data.view(dtype).reshape(rows, cols)
+    image = _placed_image(pixels, origin, row_dir, col_dir, spacing)
+    if isinstance(ticks, int) and ticks > 0:
+        time_s, time_from = _seconds_of_day(ticks * 1e-7), "the file's acquisition clock"
+    else:
+        time_s, time_from = _name_time(path)
+    return _frame(path, image, time_s, thickness, source="unity-bin", time_from=time_from)
+
+
+def _seconds_of_day(seconds: float) -> float:
+    return float(seconds % 86400.0)
+
+
+def _name_time(path: str) -> tuple[float, str]:
+    m = _NAME_TIME.search(os.path.basename(path))
+    if m:
+        return float(m.group(1)) * 1e-3, "the file name"
+    return float("nan"), "file order"
+
+
+def _dicom_frame(path: str) -> CineFrame:
+    try:
+        reader = sitk.ImageFileReader()
+        reader.SetFileName(path)
+        reader.LoadPrivateTagsOff()
+        image = reader.Execute()
+    except RuntimeError as exc:
+        raise InputError(f"cannot read cine frame {path}: {str(exc).strip().splitlines()[-1]}") from None
+    thickness = None
+    if reader.HasMetaDataKey("0018|0050"):
+        try:
+            thickness = float(str(reader.GetMetaData("0018|0050")).strip())
+        except ValueError:
+            raise InputError(f"cine frame {path} has an unreadable slice thickness "
+                             f"{reader.GetMetaData('0018|0050')!r}") from None
+    time_s, time_from = _dicom_time_s(reader, path)
+    if not np.isfinite(time_s):
+        time_s, time_from = _name_time(path)
+    frame = _frame(path, image, time_s, thickness, source="dicom", time_from=time_from)
+    frame.instance = _dicom_int(reader, "0020|0013")
+    return frame
+
+
+def read_frame(path: str) -> CineFrame:
+    """One cine frame from a file, of any form in the module docstring (the vendor's ``.bin``, DICOM, NIfTI/MHA/NRRD).
+
+    Its ``time_s`` is the file's own time in s (seconds of the day for a Unity ``.bin`` or a DICOM time; the export's
+    file-name time; NaN when the file holds none). Raises :class:`InputError` naming the file when it cannot be read.
+    """
+    if not os.path.isfile(path):
+        raise InputError(f"cine frame not found: {path}")
+    low = path.lower()
+    if low.endswith(".bin"):
+        return _unity_frame(path)
+    if low.endswith(".dcm"):
+        return _dicom_frame(path)
+    check_file_integrity(path)
+    try:
+        image = sitk.ReadImage(path)
+    except RuntimeError as exc:
+        raise InputError(f"cannot read cine frame {path}: {str(exc).strip().splitlines()[-1]}") from None
+    return _frame(path, image, float("nan"))
+
+
+def plane_name(normal) -> str:
+    """"sagittal", "coronal" or "transversal" for a plane within 10 degrees of one, else "oblique"."""
+    n = np.abs(np.asarray(normal, dtype=np.float64))
+    k = int(np.argmax(n))
+    if n[k] < np.cos(np.radians(10.0)):
+        return "oblique"
+    return ("sagittal", "coronal", "transversal")[k]
+
+
+def cine_info(paths) -> list[dict]:
+    """What was read of each frame (JSON-ready): plane, size, spacing_mm, thickness_mm, origin_mm (the world position of
+    the first pixel), row_direction, column_direction (unit world LPS vectors), time_s, and where each came from."""
+    out = []
+    for p in paths:
+        f = read_frame(p)
+        img = f.image
+        size, sp = img.GetSize(), img.GetSpacing()
+        u, v = [a for a in range(3) if a != f.thin_axis]
+        out.append({
+            "file": p, "format": f.source, "plane": plane_name(f.normal),
+            "size": [int(size[u]), int(size[v])],
+            "spacing_mm": [float(sp[u]), float(sp[v])],
+            "thickness_mm": f.thickness_mm,
+            "origin_mm": [float(x) for x in img.GetOrigin()],
+            "row_direction": [float(x) for x in f.e_u], "column_direction": [float(x) for x in f.e_v],
+            "normal": [float(x) for x in f.normal],
+            "time_s": None if not np.isfinite(f.time_s) else float(f.time_s), "time_from": f.time_from,
+        })
+    return out
 
 
 def read_cine(folder: str) -> list[CineFrame]:
     """Every frame of a cine folder, in acquisition order, with its plane index (see module docstring).
 
     Raises :class:`InputError` naming the file for an unreadable frame, a frame that is not one voxel
-    thick, mixed sizes within one plane, or DICOM frames whose acquisition times go backwards.
+    thick, mixed sizes within one plane, or a folder that mixes kinds of file.
     """
     if not os.path.isdir(folder):
         raise InputError(f"cine folder not found: {folder}")
     paths = sorted(os.path.join(folder, f) for f in os.listdir(folder) if f.lower().endswith(IMAGE_SUFFIXES))
     if not paths:
-        raise InputError(f"no cine frames (NIfTI, MHA, NRRD or DICOM files) in {folder}")
-    frames = []
-    dicom = [p for p in paths if p.lower().endswith(".dcm")]
-    if dicom and len(dicom) != len(paths):
-        raise InputError(f"{folder} mixes DICOM and other frames; keep one kind per series")
-    for n, p in enumerate(paths):
-        if not p.lower().endswith(".dcm"):
-            check_file_integrity(p)
-        try:
-            reader = sitk.ImageFileReader()
-            reader.SetFileName(p)
-            reader.LoadPrivateTagsOff()
-            image = reader.Execute()
-        except RuntimeError as exc:
-            raise InputError(f"cannot read cine frame {p}: {str(exc).strip().splitlines()[-1]}") from None
-        t = float(n)
-        if dicom:
-            t = _dicom_time_s(reader, p) + 1e-6 * _dicom_int(reader, "0020|0013")
-        frames.append(_frame(p, image, t))
+        raise InputError(f"no cine frames (Unity .bin, DICOM, NIfTI, MHA or NRRD files) in {folder}")
+    kinds = {".bin" if p.lower().endswith(".bin") else ".dcm" if p.lower().endswith(".dcm") else "image" for p in paths}
+    if len(kinds) > 1:
+        raise InputError(f"{folder} mixes kinds of cine file ({', '.join(sorted(kinds))}); keep one kind per series (the "
+                         "Unity .bin and its DICOM export of a frame are the same frame)")
+    frames = [read_frame(p) for p in paths]
+    timed = all(np.isfinite(f.time_s) for f in frames)
+    if not timed:  # no time in some file: the order of the instance numbers, then of the file names; one s apart
+        order = sorted(range(len(frames)), key=lambda n: (frames[n].instance, n))
+        for rank, n in enumerate(order):
+            frames[n].time_s, frames[n].time_from = float(rank), "file order"
+    else:
+        for f in frames:
+            f.time_s += 1e-6 * f.instance
+    times = sorted(f.time_s for f in frames)
+    if timed and len(times) > 1 and times[-1] - times[0] > 43200:  # crossed midnight: unwrap seconds of the day
+        for f in frames:
+            if f.time_s < 43200:
+                f.time_s += 86400.0
     frames.sort(key=lambda f: f.time_s)
     t0 = frames[0].time_s
     for f in frames:
@@ -154,12 +328,17 @@ def _dicom_int(reader, tag: str) -> int:
         return 0
 
 
-def _dicom_time_s(reader, path: str) -> float:
-    for tag in ("0008|0032", "0008|0033"):  # acquisition time, content time (HHMMSS.frac)
+def _dicom_time_s(reader, path: str) -> tuple[float, str]:
+    """Seconds of the day from AcquisitionDateTime, AcquisitionTime or ContentTime (NaN when none)."""
+    for tag, name in (("0008|002a", "AcquisitionDateTime"), ("0008|0032", "AcquisitionTime"), ("0008|0033", "ContentTime")):
         if reader.HasMetaDataKey(tag):
             v = str(reader.GetMetaData(tag)).strip()
+            if tag == "0008|002a":
+                v = v[8:]  # YYYYMMDDHHMMSS.frac -> HHMMSS.frac
+            if not v:
+                continue
             try:
-                return int(v[0:2]) * 3600 + int(v[2:4]) * 60 + float(v[4:] or 0)
+                return int(v[0:2]) * 3600 + int(v[2:4]) * 60 + float(v[4:].split("+")[0].split("-")[0] or 0), name
             except ValueError:
-                raise InputError(f"cine frame {path} has an unreadable acquisition time {v!r}") from None
-    return 0.0
+                raise InputError(f"cine frame {path} has an unreadable {name} {v!r}") from None
+    return float("nan"), "file order"

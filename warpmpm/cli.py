@@ -259,6 +259,14 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", default=None)
     e.add_argument("--png", default=None, help="plot of the pancreas error against frame for each method (default: beside --json)")
 
+    ci = sub.add_parser("cine-info", help="what is read of cine frames: plane, size, spacing, thickness, position, axes, time",
+                        description="Read cine frames (Elekta Unity .bin, DICOM, NIfTI/MHA/NRRD) as `warpmpm track` reads them and "
+                        "print, per frame: its plane, size (columns x rows), pixel spacing and slice thickness (mm), the world "
+                        "position of its first pixel (mm, LPS), its row and column directions and its acquisition time (s).")
+    ci.add_argument("files", nargs="+", metavar="FILE", help="cine frame files (or folders of them)")
+    ci.add_argument("--json", action="store_true", help="print a JSON list of objects (plane, size, spacing_mm, thickness_mm, "
+                    "origin_mm, row_direction, column_direction, time_s, ...) instead of a table")
+
     v = sub.add_parser("view", help="open, summarise or picture a Rerun recording")
     v.add_argument("rrd")
     v.add_argument("--summary", action="store_true", help="print entities, timelines and counts (no display needed)")
@@ -590,7 +598,41 @@ def cmd_evaluate_track(a) -> int:
     return 0
 
 
-COMMANDS = {"run": cmd_run, "sweep": cmd_sweep, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
+def cmd_cine_info(a) -> int:
+    import json
+
+    from .cine import IMAGE_SUFFIXES, cine_info
+
+    paths = []
+    for p in a.files:
+        if os.path.isdir(p):
+            inside = sorted(os.path.join(p, f) for f in os.listdir(p) if f.lower().endswith(IMAGE_SUFFIXES))
+            if not inside:
+                raise InputError(f"no cine frames (Unity .bin, DICOM, NIfTI, MHA or NRRD files) in {p}")
+            paths += inside
+        else:
+            paths.append(p)
+    info = cine_info(paths)
+    if a.json:
+        print(json.dumps(info, indent=1))
+        return 0
+
+    def vec(v, fmt="{:+.3f}"):
+        return "(" + ", ".join(fmt.format(x) for x in v) + ")"
+
+    print(f"{'file':<28} {'format':<9} {'plane':<11} {'size':>9} {'pixel mm':>13} {'thick':>6} {'first pixel (mm, LPS)':>28} "
+          f"{'row direction':>24} {'column direction':>24} {'time s':>12}")
+    for f in info:
+        t = "-" if f["time_s"] is None else f"{f['time_s']:.4f}"
+        print(f"{os.path.basename(f['file'])[-28:]:<28} {f['format']:<9} {f['plane']:<11} {f['size'][0]:>4}x{f['size'][1]:<4} "
+              f"{f['spacing_mm'][0]:>6.3f}x{f['spacing_mm'][1]:<6.3f} {f['thickness_mm']:>6.2f} {vec(f['origin_mm'], '{:.2f}'):>28} "
+              f"{vec(f['row_direction']):>24} {vec(f['column_direction']):>24} {t:>12}")
+    print("times: seconds of the day from the file's own clock (Unity .bin: its acquisition counter, UTC; DICOM: "
+          "AcquisitionDateTime/Time or ContentTime), else the time in a Unity export's file name; '-': none in the file")
+    return 0
+
+
+COMMANDS = {"run": cmd_run, "cine-info": cmd_cine_info, "sweep": cmd_sweep, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
             "make-cine": cmd_make_cine, "make-truth": cmd_make_truth, "evaluate-track": cmd_evaluate_track}
 
 

@@ -43,6 +43,21 @@ TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_i
                 "reference_ms", "pancreas_x_mm", "pancreas_y_mm", "pancreas_z_mm", "pancreas_shift_mm"] + [f"max_{o}_mm" for o in ORGANS]
 
 
+def _off_scan_message(frame, geometry, organ_distance_mm: np.ndarray, letters: str) -> str:
+    """The refusal of a frame whose plane misses the organs: how far it lies from them and from the planning scan."""
+    size = np.asarray(geometry.size, dtype=np.float64) - 1
+    corners = geometry.index_to_world(np.array([size * np.array(b) for b in np.ndindex(2, 2, 2)]))
+    d = frame.distance_mm(corners)
+    near = float(np.min(np.abs(organ_distance_mm)))
+    if d.min() > 0 or d.max() < 0:
+        scan = f"it does not cross the planning scan either: it lies {float(np.min(np.abs(d))):.1f} mm outside it"
+    else:
+        scan = "it crosses the planning scan but not the organs"
+    return (f"cine frame {frame.path}: its plane lies {near:.1f} mm from the nearest organ of the model ({letters}; "
+            f"{frame.thickness_mm:g} mm thick); {scan}. Is the cine of this patient and this session, and in the scanner "
+            "coordinates of the planning scan (both world LPS)?")
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
     """How a series is tracked."""
@@ -125,8 +140,9 @@ class Tracker:
             if f.plane in seen:
                 continue
             seen.add(f.plane)
-            if not np.any(np.abs(f.distance_mm(m.positions_mm)) <= f.thickness_mm / 2):
-                raise InputError(f"cine frame {f.path}: its plane does not cross the model's organs {m.letters}")
+            dist = f.distance_mm(m.positions_mm)
+            if not np.any(np.abs(dist) <= f.thickness_mm / 2):
+                raise InputError(_off_scan_message(f, case.geometry, dist, m.letters))
             candidates.append(np.nonzero(np.abs(f.distance_mm(m.positions_mm)) <= f.thickness_mm / 2 + cfg.reach_mm)[0])
         #: every particle that may lie on a plane during the series (each frame drives those on it now)
         self.driven = np.unique(np.concatenate(candidates))
