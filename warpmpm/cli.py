@@ -185,10 +185,20 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Track a cine series (a folder of 2D NIfTI/MHA/DICOM frames placed in 3D) from a planning "
                        "image and its organ labels: per frame the estimated label map, optionally the displacement field, "
                        "and a row of track.csv in --out.")
-    k.add_argument("--image", required=True, help="planning image")
-    k.add_argument("--labels", required=True, help="organ label map on the planning image's grid")
+    k.add_argument("--image", required=True, help="planning image (a file, or a DICOM series folder)")
+    k.add_argument("--labels", default=None, help="organ label map on the planning image's grid (or give --rtstruct)")
+    k.add_argument("--rtstruct", default=None, help="the planning RT Structure Set (with --image a DICOM series folder): the "
+                   "organs found by name (Pancreas, Stomach, Duodenum, Kidney_L and common variants) instead of --labels")
+    k.add_argument("--structure", action="append", default=[], metavar="ORGAN=NAME",
+                   help="which structure is an organ (pancreas, stomach, duodenum, left_kidney), e.g. --structure pancreas=GTV_Panc; "
+                   "repeat for each organ whose name is not a common one")
     k.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"])
-    k.add_argument("--cine", required=True, help="folder of cine frames")
+    k.add_argument("--cine", required=True, help="folder of cine frames: Elekta Unity .bin, DICOM (Unity, MRIdian), or NIfTI/MHA/NRRD "
+                   "frames one voxel thick")
+    k.add_argument("--dicom", action="store_true", help="also write, per frame, OUT/dicom/frame_NNNN/RS.dcm (the estimated organs, an "
+                   "RT Structure Set) and REG.dcm (the displacement, a Deformable Spatial Registration), referring to the planning "
+                   "series (a planning image given as NIfTI/MHA/NRRD is written once as OUT/dicom/planning/)")
+    k.add_argument("--modality", default="MR", choices=["MR", "CT"], help="modality of OUT/dicom/planning/ when --dicom writes it")
     k.add_argument("--out", required=True, help="output folder (created)")
     k.add_argument("--organs", default="psdl")
     k.add_argument("--particle-step", type=int, default=1)
@@ -455,12 +465,53 @@ def _planning_case(image, labels, preset):
     return load_case(labels, image, preset)
 
 
+def _structure_mapping(items) -> dict[str, str]:
+    organs = ("pancreas", "stomach", "duodenum", "left_kidney")
+    out = {}
+    for item in items:
+        organ, sep, name = item.partition("=")
+        organ = organ.strip()
+        if not sep or not name.strip():
+            raise InputError(f"--structure {item!r}: write ORGAN=NAME, e.g. --structure pancreas=GTV_Panc")
+        if organ not in organs:
+            raise InputError(f"--structure {item!r}: the organ must be one of {', '.join(organs)}")
+        out[organ] = name.strip()
+    return out
+
+
+def _dicom_writer(case, a, work):
+    """The planning series the DICOM outputs refer to: the user's (a DICOM --image), else the planning image written as one."""
+    from .dicom_rt import FrameDicomWriter, read_series_reference, write_series
+    from .images import grid_differences
+
+    ref = case.meta.get("dicom")
+    if ref is None and os.path.isdir(a.image):
+        ref = read_series_reference(a.image)
+    if ref is not None:
+        diff = grid_differences(ref.geometry, case.geometry)
+        if diff:
+            raise InputError(f"--dicom: the DICOM series {a.image} is not on the planning grid ({'; '.join(diff)})")
+    else:
+        ref = write_series(case.intensity_image(), os.path.join(work, "dicom", "planning"), modality=a.modality)
+    names = case.meta.get("roi_names") or {}
+    return FrameDicomWriter(ref, names)
+
+
 def cmd_track(a) -> int:
     from .cine import read_cine
     from .solver import SolverConfig
     from .tracker import Tracker, TrackerConfig
 
-    case = _planning_case(a.image, a.labels, a.preset)
+    if a.rtstruct:
+        from .dicom_rt import case_from_rtstruct
+
+        if a.labels:
+            raise InputError("give the organs once: --labels (a label map) or --rtstruct (a structure set), not both")
+        case = case_from_rtstruct(a.image, a.rtstruct, _structure_mapping(a.structure), a.organs)
+    else:
+        if a.structure:
+            raise InputError("--structure names structures of an --rtstruct; with --labels use --preset")
+        case = _planning_case(a.image, a.labels, a.preset)
     frames = read_cine(a.cine)
     out = os.path.abspath(a.out)
     parent = os.path.dirname(out)
@@ -491,7 +542,8 @@ def cmd_track(a) -> int:
 
     work = tempfile.mkdtemp(prefix=".track-", dir=parent)
     try:
-        rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder)
+        dicom = _dicom_writer(case, a, work) if a.dicom else None
+        rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder, dicom=dicom)
         if os.path.isdir(out):
             shutil.rmtree(out)
         os.replace(work, out)

@@ -40,7 +40,8 @@ __all__ = ["TRACK_FIELDS", "TrackerConfig", "TrackedFrame", "Tracker", "displace
 
 TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "settled", "body_motion_mm", "reason",
                 "wall_s", "rms_residual_mm", "registration_ms",
-                "reference_ms", "pancreas_x_mm", "pancreas_y_mm", "pancreas_z_mm", "pancreas_shift_mm"] + [f"max_{o}_mm" for o in ORGANS]
+                "reference_ms", "pancreas_x_mm", "pancreas_y_mm", "pancreas_z_mm", "pancreas_shift_mm"] + [f"max_{o}_mm" for o in ORGANS] + [
+                "field_jacobian_min", "field_folded_voxels"]
 
 
 def _off_scan_message(frame, geometry, organ_distance_mm: np.ndarray, letters: str) -> str:
@@ -272,20 +273,30 @@ class Tracker:
             row[f"max_{o}_mm"] = float(disp[m.organ_slice(o)].max()) if o in m.organs else ""
         return row
 
-    def run(self, out_dir: str, progress=None, recorder=None) -> list[dict]:
+    def run(self, out_dir: str, progress=None, recorder=None, dicom=None) -> list[dict]:
         """Track every frame, writing ``out_dir`` (module docstring); returns the CSV rows. ``recorder``
         (e.g. :class:`warpmpm.viewer.recording.TrackRecorder`) gets ``on_frame(n, frame, positions_mm)`` and
-        is closed here (``ok=False`` when tracking fails)."""
+        is closed here (``ok=False`` when tracking fails). ``dicom`` (a :class:`warpmpm.dicom_rt.FrameDicomWriter`)
+        writes each frame's structure set and registration under ``out_dir/dicom``."""
         ok = False
         try:
-            rows = self._run(out_dir, progress, recorder)
+            rows = self._run(out_dir, progress, recorder, dicom)
             ok = True
             return rows
         finally:
             if recorder is not None:
                 recorder.close(ok=ok)
 
-    def _run(self, out_dir: str, progress, recorder) -> list[dict]:
+    def field_quality(self, field_mm: np.ndarray) -> dict:
+        """The smallest Jacobian determinant of ``x -> x + u(x)`` inside the planning organs, and how many of their
+        voxels it folds (determinant <= 0)."""
+        from .fields import jacobian_determinant
+
+        inside = np.isin(self.case.labels, list(self.label_values.values()))
+        J = jacobian_determinant(field_mm, self.case.geometry)[inside]
+        return {"field_jacobian_min": float(J.min()) if J.size else float("nan"), "field_folded_voxels": int(np.sum(J <= 0))}
+
+    def _run(self, out_dir: str, progress, recorder, dicom=None) -> list[dict]:
         os.makedirs(os.path.join(out_dir, "labels"), exist_ok=True)
         if self.config.displacement:
             os.makedirs(os.path.join(out_dir, "displacement"), exist_ok=True)
@@ -301,9 +312,14 @@ class Tracker:
                 recorder.on_frame(n, frame, tf.positions_mm)
             lab = self.case.geometry.apply_to(sitk.GetImageFromArray(self.labels_now.astype(np.uint8)))
             _write_image(lab, os.path.join(out_dir, "labels", f"frame_{n:04d}.nii.gz"))
-            if self.config.displacement:
-                _write_image(displacement_field(self.model, tf.positions_mm, self.case), os.path.join(out_dir, "displacement",
-                                                                                                    f"frame_{n:04d}.nii.gz"))
+            if self.config.displacement or dicom is not None:
+                field_img = displacement_field(self.model, tf.positions_mm, self.case)
+                field_mm = sitk.GetArrayFromImage(field_img)
+                tf.row.update(self.field_quality(field_mm))
+                if self.config.displacement:
+                    _write_image(field_img, os.path.join(out_dir, "displacement", f"frame_{n:04d}.nii.gz"))
+                if dicom is not None:
+                    dicom.write(out_dir, n, self.labels_now, self.label_values, field_mm, frame.time_s)
             if progress:
                 unit = "Newton iterations" if tf.row["solver"] == "quasistatic" else "steps"
                 progress(f"frame {n}: plane {frame.plane}, {tf.row['steps']} {unit}, {tf.row['latency_s'] * 1e3:.0f} ms "
