@@ -16,8 +16,8 @@ import pytest
 import SimpleITK as sitk
 
 from warpmpm.cli import main
-from warpmpm.dicom_rt import (find_structures, read_registration, read_rtstruct, read_series_reference, write_registration,
-                              write_rtstruct, write_series)
+from warpmpm.dicom_rt import (find_structures, read_registration, read_rtstruct, write_registration, write_rtdose, write_rtstruct,
+                              write_series)
 from warpmpm.errors import InputError
 from warpmpm.images import load_case
 
@@ -160,15 +160,29 @@ def tracked(tmp_path_factory, planning):
     plan = tmp_path_factory.mktemp("clinic")
     pref = write_series(case.intensity_image(), str(plan / "series"), "MR")
     write_rtstruct(str(plan / "RS.dcm"), pref, {o: case.labels == v for o, v in case.label_map.items()}, ORGAN_ROIS)
+    write_rtdose(str(plan / "RD.dcm"), pref, plan_dose(case))
+    with open(plan / "beam.csv", "w") as f:
+        f.write("frame,beam_on_s\n0,0.25\n1,0.25\n")
     out = str(tmp_path_factory.mktemp("track") / "out")
     code = main(["track", "--image", str(plan / "series"), "--rtstruct", str(plan / "RS.dcm"), "--cine",
-                 os.path.join(series, "cine"), "--out", out, "--device", "cpu", "--max-steps", "1500", "--dicom", "--displacement"])
+                 os.path.join(series, "cine"), "--out", out, "--device", "cpu", "--max-steps", "1500", "--dicom", "--displacement",
+                 "--dose", str(plan / "RD.dcm"), "--beam-on", str(plan / "beam.csv")])
     assert code == 0
-    return plan, pref, out
+    return plan, pref, out, case
+
+
+def plan_dose(case):
+    """50 Gy around the pancreas falling off over about 8 mm (a logistic edge), 0 far away."""
+    g = case.geometry
+    k, j, i = np.meshgrid(*[np.arange(n) for n in g.size[::-1]], indexing="ij")
+    w = g.index_to_world(np.stack([i.ravel(), j.ravel(), k.ravel()], 1).astype(float)).reshape(k.shape + (3,))
+    c = w[case.labels == case.label_map["pancreas"]].mean(0)
+    r = np.linalg.norm(w - c, axis=-1)
+    return 50.0 / (1.0 + np.exp((r - 25.0) / 4.0))
 
 
 def test_track_from_a_structure_set_writes_contours_and_registrations_a_planning_system_reads(tracked, tmp_path):
-    plan, pref, out = tracked
+    plan, pref, out, _ = tracked
     values = {"pancreas": 10, "stomach": 7, "duodenum": 13, "left_kidney": 3}  # the AMOS labels of a structure-set case
     for n in range(2):
         folder = os.path.join(out, "dicom", f"frame_{n:04d}")
@@ -215,3 +229,24 @@ def test_field_quality_counts_folds():
     field = np.zeros((5, 6, 8, 3))
     field[..., 0] = -2.0 * x
     assert np.allclose(jacobian_determinant(field, g), -1.0)
+
+
+def test_track_with_a_plan_dose_writes_planned_and_accumulated_dvhs(tracked):
+    """The planned figures are the plan's dose on the planning organs (computed here apart); the accumulated ones move
+    with the estimate; the accumulated RT Dose passes dciodvfy; the plot is there."""
+    from warpmpm.dose import dose_metrics
+
+    plan, pref, out, case = tracked
+    rows = {(r["organ"], r["metric"]): r for r in csv.DictReader(open(os.path.join(out, "dose", "dose_metrics.csv")))}
+    dose = plan_dose(case)
+    cc = float(np.prod(case.geometry.spacing_mm)) / 1000.0
+    for organ, metrics in {"pancreas": ("D95_Gy", "D98_Gy"), "duodenum": ("D0.5cc_Gy", "D1cc_Gy", "Dmax_Gy"),
+                           "stomach": ("D0.5cc_Gy", "D1cc_Gy", "Dmax_Gy")}.items():
+        direct = dose_metrics(dose[case.labels == case.label_map[organ]], cc)
+        for m in metrics:
+            assert float(rows[(organ, m)]["planned"]) == pytest.approx(direct[m], abs=0.02 + 0.002 * direct[m]), (organ, m)
+            assert np.isfinite(float(rows[(organ, m)]["accumulated"]))
+    dvh = list(csv.DictReader(open(os.path.join(out, "dose", "dvh.csv"))))
+    assert float(dvh[0]["pancreas_planned_pct"]) == pytest.approx(100.0) and float(dvh[-1]["pancreas_accumulated_pct"]) == 0.0
+    assert os.path.getsize(os.path.join(out, "dose", "dvh.png")) > 10_000
+    assert dciodvfy_errors(os.path.join(out, "dicom", "RD_accumulated.dcm")) == []

@@ -199,6 +199,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "RT Structure Set) and REG.dcm (the displacement, a Deformable Spatial Registration), referring to the planning "
                    "series (a planning image given as NIfTI/MHA/NRRD is written once as OUT/dicom/planning/)")
     k.add_argument("--modality", default="MR", choices=["MR", "CT"], help="modality of OUT/dicom/planning/ when --dicom writes it")
+    k.add_argument("--dose", default=None, help="the planned dose: an RT Dose (.dcm) or a dose image in Gy on any grid; each organ's "
+                   "dose through each frame's estimated motion is accumulated over the series: OUT/dose/dvh.csv, dose_metrics.csv "
+                   "(pancreas D95/D98, duodenum and stomach D0.5cc/D1cc/Dmax, ...), dvh.png, accumulated_dose.nii.gz")
+    k.add_argument("--beam-on", default=None, metavar="CSV", help="with --dose: a CSV with columns frame,beam_on_s (the beam-on time "
+                   "of each frame, s) to weight the frames by; default: equal weights")
     k.add_argument("--out", required=True, help="output folder (created)")
     k.add_argument("--organs", default="psdl")
     k.add_argument("--particle-step", type=int, default=1)
@@ -479,6 +484,42 @@ def _structure_mapping(items) -> dict[str, str]:
     return out
 
 
+def sitk_array(image):
+    import SimpleITK as sitk
+
+    return sitk.GetArrayFromImage(image)
+
+
+def _beam_on(path: str, n_frames: int) -> list[float]:
+    import csv
+
+    import numpy as np
+
+    if not os.path.isfile(path):
+        raise InputError(f"--beam-on file not found: {path}")
+    weights = [None] * n_frames
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        if not reader.fieldnames or not {"frame", "beam_on_s"} <= set(reader.fieldnames):
+            raise InputError(f"--beam-on {path}: columns frame,beam_on_s are required (it has {reader.fieldnames})")
+        for line, row in enumerate(reader, start=2):
+            try:
+                n, t = int(row["frame"]), float(row["beam_on_s"])
+            except (TypeError, ValueError):
+                raise InputError(f"--beam-on {path}, line {line}: frame must be an integer and beam_on_s a number") from None
+            if not 0 <= n < n_frames:
+                raise InputError(f"--beam-on {path}, line {line}: frame {n} is not one of the cine's {n_frames} frames (0-{n_frames - 1})")
+            if not (np.isfinite(t) and t >= 0):
+                raise InputError(f"--beam-on {path}, line {line}: beam_on_s {t} must be finite and >= 0")
+            if weights[n] is not None:
+                raise InputError(f"--beam-on {path}, line {line}: frame {n} is given twice")
+            weights[n] = t
+    missing = [n for n, w in enumerate(weights) if w is None]
+    if missing:
+        raise InputError(f"--beam-on {path} gives no beam_on_s for frames {missing[:10]}{' ...' if len(missing) > 10 else ''}")
+    return weights
+
+
 def _dicom_writer(case, a, work):
     """The planning series the DICOM outputs refer to: the user's (a DICOM --image), else the planning image written as one."""
     from .dicom_rt import FrameDicomWriter, read_series_reference, write_series
@@ -526,6 +567,16 @@ def cmd_track(a) -> int:
                         predict=not a.no_predict, wait_settled=a.wait_settled, registration=a.registration,
                         registration_linear_prior=a.linear_prior, reference=a.reference,
                         solver=SolverConfig(device=a.device, method=a.solver, cpu_threads=a.threads))
+    dose, weights = None, None
+    if a.beam_on and not a.dose:
+        raise InputError("--beam-on weights the frames' dose: give --dose too")
+    if a.dose:
+        from .dose import DoseAccumulator, read_dose
+
+        organs_wanted = [o for o, c in zip(("pancreas", "stomach", "duodenum", "left_kidney"), "psdl") if c in a.organs]
+        masks = {o: case.labels == v for o, v in case.label_map.items() if o in organs_wanted}
+        dose = DoseAccumulator(read_dose(a.dose), case.geometry, masks)
+        weights = _beam_on(a.beam_on, len(frames)) if a.beam_on else None
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
           f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes", file=sys.stderr)
@@ -543,7 +594,15 @@ def cmd_track(a) -> int:
     work = tempfile.mkdtemp(prefix=".track-", dir=parent)
     try:
         dicom = _dicom_writer(case, a, work) if a.dicom else None
-        rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder, dicom=dicom)
+        rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder, dicom=dicom, dose=dose,
+                           dose_weights=weights)
+        if dose is not None and dicom is not None:
+            from .dicom_rt import write_rtdose
+
+            plan = dose.dose.GetMetaData("plan_uid") if dose.dose.HasMetaDataKey("plan_uid") else None
+            write_rtdose(os.path.join(work, "dicom", "RD_accumulated.dcm"), dicom.ref,
+                         sitk_array(dose.accumulated_image()), plan_uid=plan,
+                         description="warpmpm accumulated dose (organs only)")
         if os.path.isdir(out):
             shutil.rmtree(out)
         os.replace(work, out)

@@ -39,12 +39,14 @@ from .errors import InputError
 from .images import Geometry
 
 __all__ = ["SeriesReference", "STRUCTURE_NAMES", "write_series", "read_series_reference", "write_rtstruct", "read_rtstruct",
-           "find_structures", "write_registration", "read_registration", "case_from_rtstruct", "FrameDicomWriter"]
+           "find_structures", "write_registration", "read_registration", "case_from_rtstruct", "FrameDicomWriter",
+           "write_rtdose"]
 
 MR_IMAGE = "1.2.840.10008.5.1.4.1.1.4"
 CT_IMAGE = "1.2.840.10008.5.1.4.1.1.2"
 RT_STRUCTURE_SET = "1.2.840.10008.5.1.4.1.1.481.3"
 DEFORMABLE_REGISTRATION = "1.2.840.10008.5.1.4.1.1.66.3"
+RT_DOSE = "1.2.840.10008.5.1.4.1.1.481.2"
 IMPLEMENTATION_NAME = "WARPMPM"
 DISCLAIMER = "warpmpm research estimate; not a medical device; review before clinical use"
 SHORT_DISCLAIMER = "warpmpm estimate; not a medical device"
@@ -127,8 +129,10 @@ def _base(sop_class: str, sop_uid: str, ref: SeriesReference, modality: str, ser
     ds.ManufacturerModelName = "warpmpm"
     ds.DeviceSerialNumber = "0"
     ds.SoftwareVersions = _version()
-    if sop_class != RT_STRUCTURE_SET:
+    if sop_class not in (RT_STRUCTURE_SET, RT_DOSE):
         ds.Laterality = ""
+    if sop_class in (RT_STRUCTURE_SET, RT_DOSE):
+        ds.OperatorsName = ""
     ds.ReferringPhysicianName = ""
     ds.StudyDescription = "warpmpm"
     ds.SeriesDescription = description[:64]
@@ -319,7 +323,6 @@ def write_rtstruct(path: str, ref: SeriesReference, masks: dict[str, np.ndarray]
     ds.StructureSetName = label[:64]
     ds.StructureSetDescription = DISCLAIMER
     ds.StructureSetDate, ds.StructureSetTime = ds.InstanceCreationDate, ds.InstanceCreationTime
-    ds.OperatorsName = ""
     contour_images = Sequence()
     for uid in ref.sop_instance_uids:
         item = Dataset()
@@ -664,3 +667,48 @@ class FrameDicomWriter:
         what = f"warpmpm frame {n} (t = {time_s:.3f} s)"
         write_rtstruct(os.path.join(folder, "RS.dcm"), self.ref, masks, self.roi_names, label=f"frame {n}", description=what)
         write_registration(os.path.join(folder, "REG.dcm"), self.ref, field_mm, description=what)
+
+
+def write_rtdose(path: str, ref: SeriesReference, dose_gy: np.ndarray, plan_uid: str | None = None,
+                 description: str = "warpmpm dose") -> None:
+    """An RT Dose (Gy, summation PLAN) on the planning grid of ``ref`` (multi-frame, one frame per slice along its
+    third axis), referring to the RT Plan ``plan_uid`` (the planned dose's plan; a new UID when unknown)."""
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    g = ref.geometry
+    dose_gy = np.asarray(dose_gy, dtype=np.float64)
+    if dose_gy.shape != tuple(g.size[::-1]):
+        raise InputError(f"RT Dose: a dose of shape {dose_gy.shape}, the grid is {tuple(g.size[::-1])} (z, y, x)")
+    if not np.isfinite(dose_gy).all() or dose_gy.min() < 0:
+        raise InputError("RT Dose: the dose holds negative or non-finite values; nothing was written")
+    scale = max(float(dose_gy.max()), 1e-9) / 65535.0
+    ds = _base(RT_DOSE, _uid(), ref, "RTDOSE", _uid(), 903, description)
+    ds.FrameOfReferenceUID = ref.frame_of_reference_uid
+    ds.PositionReferenceIndicator = ""
+    d = g.direction_matrix
+    ds.ImageType = ["DERIVED", "SECONDARY", "OTHER"]
+    ds.ImagePositionPatient = [_ds(float(x)) for x in g.origin_mm]
+    ds.ImageOrientationPatient = [_ds(float(x)) for x in np.concatenate([d[:, 0], d[:, 1]])]
+    ds.PixelSpacing = [_ds(g.spacing_mm[1]), _ds(g.spacing_mm[0])]
+    ds.SliceThickness = _ds(g.spacing_mm[2])
+    ds.NumberOfFrames = g.size[2]
+    ds.FrameIncrementPointer = 0x3004000C
+    ds.GridFrameOffsetVector = [_ds(k * g.spacing_mm[2]) for k in range(g.size[2])]
+    ds.SamplesPerPixel = 1
+    ds.PhotometricInterpretation = "MONOCHROME2"
+    ds.Rows, ds.Columns = g.size[1], g.size[0]
+    ds.BitsAllocated = ds.BitsStored = 16
+    ds.HighBit = 15
+    ds.PixelRepresentation = 0
+    ds.DoseUnits = "GY"
+    ds.DoseType = "PHYSICAL"
+    ds.DoseSummationType = "PLAN"
+    ds.DoseGridScaling = _ds(scale)
+    ds.DoseComment = SHORT_DISCLAIMER
+    plan = Dataset()
+    plan.ReferencedSOPClassUID = "1.2.840.10008.5.1.4.1.1.481.5"
+    plan.ReferencedSOPInstanceUID = plan_uid or _uid()
+    ds.ReferencedRTPlanSequence = Sequence([plan])
+    ds.PixelData = np.rint(dose_gy / scale).astype("<u2").tobytes()
+    _save(ds, path)

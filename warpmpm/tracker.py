@@ -273,14 +273,16 @@ class Tracker:
             row[f"max_{o}_mm"] = float(disp[m.organ_slice(o)].max()) if o in m.organs else ""
         return row
 
-    def run(self, out_dir: str, progress=None, recorder=None, dicom=None) -> list[dict]:
+    def run(self, out_dir: str, progress=None, recorder=None, dicom=None, dose=None, dose_weights=None) -> list[dict]:
         """Track every frame, writing ``out_dir`` (module docstring); returns the CSV rows. ``recorder``
         (e.g. :class:`warpmpm.viewer.recording.TrackRecorder`) gets ``on_frame(n, frame, positions_mm)`` and
         is closed here (``ok=False`` when tracking fails). ``dicom`` (a :class:`warpmpm.dicom_rt.FrameDicomWriter`)
-        writes each frame's structure set and registration under ``out_dir/dicom``."""
+        writes each frame's structure set and registration under ``out_dir/dicom``. ``dose`` (a
+        :class:`warpmpm.dose.DoseAccumulator`) takes each frame's field, weighted by ``dose_weights[n]`` (default 1),
+        and writes the DVHs under ``out_dir/dose``."""
         ok = False
         try:
-            rows = self._run(out_dir, progress, recorder, dicom)
+            rows = self._run(out_dir, progress, recorder, dicom, dose, dose_weights)
             ok = True
             return rows
         finally:
@@ -296,7 +298,7 @@ class Tracker:
         J = jacobian_determinant(field_mm, self.case.geometry)[inside]
         return {"field_jacobian_min": float(J.min()) if J.size else float("nan"), "field_folded_voxels": int(np.sum(J <= 0))}
 
-    def _run(self, out_dir: str, progress, recorder, dicom=None) -> list[dict]:
+    def _run(self, out_dir: str, progress, recorder, dicom=None, dose=None, dose_weights=None) -> list[dict]:
         os.makedirs(os.path.join(out_dir, "labels"), exist_ok=True)
         if self.config.displacement:
             os.makedirs(os.path.join(out_dir, "displacement"), exist_ok=True)
@@ -312,7 +314,7 @@ class Tracker:
                 recorder.on_frame(n, frame, tf.positions_mm)
             lab = self.case.geometry.apply_to(sitk.GetImageFromArray(self.labels_now.astype(np.uint8)))
             _write_image(lab, os.path.join(out_dir, "labels", f"frame_{n:04d}.nii.gz"))
-            if self.config.displacement or dicom is not None:
+            if self.config.displacement or dicom is not None or dose is not None:
                 field_img = displacement_field(self.model, tf.positions_mm, self.case)
                 field_mm = sitk.GetArrayFromImage(field_img)
                 tf.row.update(self.field_quality(field_mm))
@@ -320,11 +322,15 @@ class Tracker:
                     _write_image(field_img, os.path.join(out_dir, "displacement", f"frame_{n:04d}.nii.gz"))
                 if dicom is not None:
                     dicom.write(out_dir, n, self.labels_now, self.label_values, field_mm, frame.time_s)
+                if dose is not None:
+                    dose.add(field_mm, 1.0 if dose_weights is None else float(dose_weights[n]))
             if progress:
                 unit = "Newton iterations" if tf.row["solver"] == "quasistatic" else "steps"
                 progress(f"frame {n}: plane {frame.plane}, {tf.row['steps']} {unit}, {tf.row['latency_s'] * 1e3:.0f} ms "
                          f"(registration {tf.row['registration_ms']:.0f} ms, reference {tf.row['reference_ms']:.0f} ms), pancreas moved {tf.row['pancreas_shift_mm']:.2f} mm")
         _write_csv(os.path.join(out_dir, "track.csv"), rows, TRACK_FIELDS + ["latency_s"])
+        if dose is not None:
+            dose.write(os.path.join(out_dir, "dose"), len(self.frames))
         tmp = os.path.join(out_dir, "particles.part.npz")
         np.savez_compressed(tmp, planning_mm=self.model.positions_mm, organ_index=self.model.organ_index,
                             organs=np.asarray(self.model.organs), estimate_mm=np.asarray(positions), propagate_mm=np.asarray(propagated))
