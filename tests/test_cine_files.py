@@ -285,3 +285,73 @@ def test_damaged_bin_gives_one_clear_error(tmp_path, damage):
     p.write_bytes(data)
     with pytest.raises(InputError, match="frame.bin"):
         read_frame(str(p))
+
+
+# ------------------------------------------------------------------------------------------------
+# the TrackRAD challenge's layout
+# ------------------------------------------------------------------------------------------------
+
+def trackrad_case(folder, stack_rows_cols_time, spacing=(1.0, 1.5, 2.0), rate=8.0):
+    """A TrackRAD case folder: images/<id>_frames.mha (numpy (rows, columns, time)) and frame-rate.json."""
+    import SimpleITK as sitk
+
+    os.makedirs(os.path.join(folder, "images"), exist_ok=True)
+    img = sitk.GetImageFromArray(np.asarray(stack_rows_cols_time, dtype=np.float32))
+    img.SetSpacing(spacing)
+    sitk.WriteImage(img, os.path.join(folder, "images", f"{os.path.basename(folder)}_frames.mha"))
+    with open(os.path.join(folder, "frame-rate.json"), "w") as f:
+        json.dump(rate, f)
+    return folder
+
+
+def test_trackrad_frames_are_timed_by_the_frame_rate_and_placed_where_the_user_says(tmp_path):
+    from warpmpm.cine import read_trackrad
+
+    stack = np.arange(40 * 30 * 5, dtype=np.float32).reshape(40, 30, 5)
+    case = trackrad_case(str(tmp_path / "A_001"), stack, rate=8.0)
+    with pytest.raises(InputError, match="keep no patient position.*--trackrad-centre"):
+        read_trackrad(case)
+    frames = read_trackrad(case, (12.0, -3.0, 40.0))
+    assert len(frames) == 5 and np.allclose([f.time_s for f in frames], np.arange(5) / 8.0)
+    f = frames[3]
+    assert plane_name(f.normal) == "sagittal" and np.allclose(f.centre_mm, (12.0, -3.0, 40.0))
+    import SimpleITK as sitk
+
+    assert np.array_equal(np.squeeze(sitk.GetArrayFromImage(f.image)), stack[:, :, 3])
+    # pixel (row 0, column 0) lies anterior (-y) and superior (+z) of the centre: columns run posterior, rows inferior
+    p = np.array(f.image.TransformIndexToPhysicalPoint((0, 0, 0)))
+    assert np.allclose(p, (12.0, -3.0 - 14.5 * 1.5, 40.0 + 19.5 * 2.0))
+
+
+def test_track_on_a_trackrad_case_through_the_phantom(tmp_path, tiny_case, capsys):
+    """The phantom's planning image sampled on a sagittal plane through the pancreas, as a TrackRAD stack of still
+    frames: tracked end to end (the still frames give a still estimate), and refused without a placement."""
+    import SimpleITK as sitk
+
+    from warpmpm.cli import main
+
+    g = tiny_case.geometry
+    plan = tmp_path / "plan"
+    plan.mkdir()
+    sitk.WriteImage(tiny_case.intensity_image(), str(plan / "image.nii.gz"))
+    sitk.WriteImage(tiny_case.labels_image(), str(plan / "labels.nii.gz"))
+    ijk = np.argwhere(tiny_case.labels == tiny_case.label_map["pancreas"])[:, ::-1].astype(float)
+    centre = g.index_to_world(ijk).mean(0)
+    rows, cols, sp = 48, 60, 2.0
+    r, c = np.mgrid[0:rows, 0:cols]
+    world = (centre + ((c - (cols - 1) / 2) * sp)[..., None] * np.array([0, 1.0, 0])
+             + ((r - (rows - 1) / 2) * sp)[..., None] * np.array([0, 0, -1.0]))
+    from scipy import ndimage
+
+    q = g.world_to_index(world.reshape(-1, 3))
+    plane = ndimage.map_coordinates(tiny_case.image, q[:, ::-1].T, order=1).reshape(rows, cols)
+    case = trackrad_case(str(tmp_path / "Z_001"), np.repeat(plane[..., None], 3, axis=2), spacing=(1.0, sp, sp), rate=4.0)
+    args = ["track", "--image", str(plan / "image.nii.gz"), "--labels", str(plan / "labels.nii.gz"), "--cine", case,
+            "--out", str(tmp_path / "out"), "--device", "cpu", "--max-steps", "600"]
+    assert main(args) == 2 and "--trackrad-centre" in capsys.readouterr().err
+    assert main(args + ["--trackrad-centre=" + ",".join(f"{v:.3f}" for v in centre)]) == 0
+    import csv
+
+    rows_out = list(csv.DictReader(open(tmp_path / "out" / "track.csv")))
+    assert [float(r["time_s"]) for r in rows_out] == pytest.approx([0.0, 0.25, 0.5])
+    assert all(float(r["pancreas_shift_mm"]) < 1.0 for r in rows_out)

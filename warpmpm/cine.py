@@ -13,6 +13,11 @@ A frame is a 2D image placed in 3D, in any of these forms:
   file names (``..._698.4829_(ms).dcm``), else its instance number;
 - a NIfTI / MHA / NRRD image one voxel thick (its geometry places the plane; frames are ordered by file name).
 
+- a TrackRAD challenge case folder (``images/<id>_frames.mha``, ``frame-rate.json``): a 2D+t stack of sagittal
+  frames, time along the first ITK axis (numpy ``(rows, columns, time)``), timed by the frame rate. TrackRAD keeps
+  no patient position, so its frames are placed where the user says: on the sagittal plane through ``centre_mm``,
+  rows running inferior (-z) and columns posterior (+y), the layout of Unity's sagittal frames.
+
 Frames are ordered by acquisition time. Any plane orientation, oblique included. Frames of the same plane (same normal and position, to 0.5 mm) form one plane's stream:
 one plane on MRIdian (sagittal), interleaved sagittal / coronal on Unity.
 
@@ -32,7 +37,7 @@ import SimpleITK as sitk
 from .errors import InputError
 from .images import check_file_integrity
 
-__all__ = ["IMAGE_SUFFIXES", "CineFrame", "read_cine", "read_frame", "cine_info", "plane_name"]
+__all__ = ["IMAGE_SUFFIXES", "CineFrame", "read_cine", "read_frame", "cine_info", "plane_name", "is_trackrad", "read_trackrad"]
 
 IMAGE_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".dcm", ".bin")
 
@@ -342,3 +347,63 @@ def _dicom_time_s(reader, path: str) -> tuple[float, str]:
             except ValueError:
                 raise InputError(f"cine frame {path} has an unreadable {name} {v!r}") from None
     return float("nan"), "file order"
+
+
+def is_trackrad(folder: str) -> bool:
+    """Whether ``folder`` is laid out as a TrackRAD case (``images/*_frames.mha`` beside ``frame-rate.json``)."""
+    images = os.path.join(folder, "images")
+    return (os.path.isfile(os.path.join(folder, "frame-rate.json")) and os.path.isdir(images)
+            and any(f.endswith("_frames.mha") for f in os.listdir(images)))
+
+
+def read_trackrad(folder: str, centre_mm=None, thickness_mm: float = 5.0) -> list[CineFrame]:
+    """The frames of a TrackRAD case folder, placed on the sagittal plane through ``centre_mm`` (module docstring).
+
+    ``thickness_mm``: the slice thickness (TrackRAD does not keep it; 5 mm is Unity's and MRIdian's usual cine).
+    Raises :class:`InputError` when the layout is incomplete, the frame rate unreadable, or no placement is given.
+    """
+    import json
+
+    if not is_trackrad(folder):
+        raise InputError(f"{folder} is not a TrackRAD case folder (images/<id>_frames.mha and frame-rate.json)")
+    stacks = sorted(f for f in os.listdir(os.path.join(folder, "images")) if f.endswith("_frames.mha"))
+    if len(stacks) > 1:
+        raise InputError(f"{folder}/images holds {len(stacks)} primary cine stacks ({', '.join(stacks)}); keep one per folder")
+    try:
+        with open(os.path.join(folder, "frame-rate.json")) as fh:
+            rate = json.load(fh)
+        rate = float(rate["frame_rate"] if isinstance(rate, dict) else rate)
+    except (ValueError, KeyError, TypeError, json.JSONDecodeError):
+        raise InputError(f"{folder}/frame-rate.json: a frame rate (a number of frames per second) is required") from None
+    if not (np.isfinite(rate) and 0 < rate <= 100):
+        raise InputError(f"{folder}/frame-rate.json: frame rate {rate} fps; an MR-Linac cine runs at 1-100 fps")
+    if centre_mm is None:
+        raise InputError(f"{folder} is a TrackRAD case: its frames keep no patient position; say where the sagittal plane lies in "
+                         "the planning scan with --trackrad-centre X,Y,Z (mm, LPS: a point on the plane at the frames' centre)")
+    centre = np.asarray(centre_mm, dtype=np.float64)
+    if centre.shape != (3,) or not np.all(np.isfinite(centre)):
+        raise InputError(f"--trackrad-centre must be three finite numbers (mm), got {centre_mm!r}")
+    path = os.path.join(folder, "images", stacks[0])
+    check_file_integrity(path)
+    try:
+        stack = sitk.ReadImage(path)
+    except RuntimeError as exc:
+        raise InputError(f"cannot read {path}: {str(exc).strip().splitlines()[-1]}") from None
+    if stack.GetDimension() != 3:
+        raise InputError(f"{path} is {stack.GetDimension()}D; a TrackRAD stack is 3D (time, columns, rows)")
+    arr = sitk.GetArrayFromImage(stack)  # (rows, columns, time)
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{path} holds non-finite pixels")
+    spacing = stack.GetSpacing()
+    rows, cols, n = arr.shape
+    row_dir, col_dir = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, -1.0])
+    sp = (float(spacing[1]), float(spacing[2]))  # along a row (columns), along a column (rows)
+    first = centre - (cols - 1) / 2.0 * sp[0] * row_dir - (rows - 1) / 2.0 * sp[1] * col_dir
+    frames = []
+    for t in range(n):
+        image = _placed_image(arr[:, :, t], first, row_dir, col_dir, sp)
+        f = _frame(f"{path}#frame{t}", image, t / rate, thickness_mm, source="trackrad", time_from="the frame rate")
+        frames.append(f)
+    for f in frames:
+        f.plane = 0
+    return frames

@@ -195,6 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"])
     k.add_argument("--cine", required=True, help="folder of cine frames: Elekta Unity .bin, DICOM (Unity, MRIdian), or NIfTI/MHA/NRRD "
                    "frames one voxel thick")
+    k.add_argument("--trackrad-centre", default=None, metavar="X,Y,Z",
+                   help="a TrackRAD case as --cine keeps no patient position: the point (mm, LPS, in the planning scan) the "
+                   "sagittal frames are centred on (write --trackrad-centre=X,Y,Z when X is negative)")
     k.add_argument("--dicom", action="store_true", help="also write, per frame, OUT/dicom/frame_NNNN/RS.dcm (the estimated organs, an "
                    "RT Structure Set) and REG.dcm (the displacement, a Deformable Spatial Registration), referring to the planning "
                    "series (a planning image given as NIfTI/MHA/NRRD is written once as OUT/dicom/planning/)")
@@ -470,6 +473,16 @@ def _planning_case(image, labels, preset):
     return load_case(labels, image, preset)
 
 
+def _point(text: str, option: str):
+    try:
+        p = [float(v) for v in text.split(",")]
+    except ValueError:
+        p = []
+    if len(p) != 3 or not all(abs(v) < 1e4 for v in p):
+        raise InputError(f"{option} {text!r}: three finite numbers in mm, e.g. {option}=-10,20,35")
+    return p
+
+
 def _structure_mapping(items) -> dict[str, str]:
     organs = ("pancreas", "stomach", "duodenum", "left_kidney")
     out = {}
@@ -553,7 +566,14 @@ def cmd_track(a) -> int:
         if a.structure:
             raise InputError("--structure names structures of an --rtstruct; with --labels use --preset")
         case = _planning_case(a.image, a.labels, a.preset)
-    frames = read_cine(a.cine)
+    from .cine import is_trackrad, read_trackrad
+
+    if is_trackrad(a.cine):
+        frames = read_trackrad(a.cine, _point(a.trackrad_centre, "--trackrad-centre") if a.trackrad_centre else None)
+    else:
+        if a.trackrad_centre:
+            raise InputError(f"--trackrad-centre places a TrackRAD case; {a.cine} is not one (its frames carry their own position)")
+        frames = read_cine(a.cine)
     out = os.path.abspath(a.out)
     parent = os.path.dirname(out)
     if not os.path.isdir(parent):
@@ -714,8 +734,21 @@ def cmd_cine_info(a) -> int:
 
     from .cine import IMAGE_SUFFIXES, cine_info
 
-    paths = []
+    from .cine import is_trackrad, read_trackrad
+
+    paths, stacks = [], []
     for p in a.files:
+        if os.path.isdir(p) and is_trackrad(p):
+            frames = read_trackrad(p, (0.0, 0.0, 0.0))
+            f = frames[0]
+            size, sp = f.image.GetSize(), f.image.GetSpacing()
+            stacks.append({"file": p, "format": "trackrad", "plane": "sagittal", "size": [int(size[0]), int(size[1])],
+                           "spacing_mm": [float(sp[0]), float(sp[1])], "thickness_mm": f.thickness_mm, "origin_mm": None,
+                           "row_direction": [float(x) for x in f.e_u], "column_direction": [float(x) for x in f.e_v],
+                           "time_s": 0.0, "time_from": "the frame rate", "frames": len(frames),
+                           "fps": (len(frames) - 1) / frames[-1].time_s if len(frames) > 1 else None,
+                           "note": "TrackRAD keeps no patient position or thickness: placed by --trackrad-centre, 5 mm assumed"})
+            continue
         if os.path.isdir(p):
             inside = sorted(os.path.join(p, f) for f in os.listdir(p) if f.lower().endswith(IMAGE_SUFFIXES))
             if not inside:
@@ -723,7 +756,7 @@ def cmd_cine_info(a) -> int:
             paths += inside
         else:
             paths.append(p)
-    info = cine_info(paths)
+    info = cine_info(paths) + stacks
     if a.json:
         print(json.dumps(info, indent=1))
         return 0
@@ -734,6 +767,11 @@ def cmd_cine_info(a) -> int:
     print(f"{'file':<28} {'format':<9} {'plane':<11} {'size':>9} {'pixel mm':>13} {'thick':>6} {'first pixel (mm, LPS)':>28} "
           f"{'row direction':>24} {'column direction':>24} {'time s':>12}")
     for f in info:
+        if f["format"] == "trackrad":
+            print(f"{os.path.basename(os.path.normpath(f['file']))[-28:]:<28} {'trackrad':<9} {'sagittal':<11} {f['size'][0]:>4}x{f['size'][1]:<4} "
+                  f"{f['spacing_mm'][0]:>6.3f}x{f['spacing_mm'][1]:<6.3f} {f['thickness_mm']:>6.2f} {'(none: --trackrad-centre)':>28} "
+                  f"{vec(f['row_direction']):>24} {vec(f['column_direction']):>24} {f['frames']:>5} frames at {f['fps'] or 0:.2f} fps")
+            continue
         t = "-" if f["time_s"] is None else f"{f['time_s']:.4f}"
         print(f"{os.path.basename(f['file'])[-28:]:<28} {f['format']:<9} {f['plane']:<11} {f['size'][0]:>4}x{f['size'][1]:<4} "
               f"{f['spacing_mm'][0]:>6.3f}x{f['spacing_mm'][1]:<6.3f} {f['thickness_mm']:>6.2f} {vec(f['origin_mm'], '{:.2f}'):>28} "
