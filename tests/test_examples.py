@@ -61,3 +61,19 @@ def test_register_slice_recovers_a_known_motion():
 def test_every_example_documents_itself(name):
     mod = example(name)
     assert mod.__doc__ and "python examples/" in mod.__doc__
+
+
+def test_clinic_files_example_writes_what_a_planning_system_opens(tmp_path, capsys):
+    """The DICOM planning data in, one `warpmpm track` command, contours / registrations / DVHs out."""
+    import csv
+
+    track = example("clinic_files").main(["--out", str(tmp_path), "--frames", "2", "--phantom-resolution", "3",
+                                           "--device", "cpu"])
+    for n in range(2):
+        for name in ("RS.dcm", "REG.dcm"):
+            assert os.path.getsize(os.path.join(track, "dicom", f"frame_{n:04d}", name)) > 1000
+    assert os.path.exists(os.path.join(track, "dicom", "RD_accumulated.dcm"))
+    rows = {(r["organ"], r["metric"]) for r in csv.DictReader(open(os.path.join(track, "dose", "dose_metrics.csv")))}
+    assert {("pancreas", "D95_Gy"), ("pancreas", "D98_Gy"), ("duodenum", "D0.5cc_Gy"), ("stomach", "D1cc_Gy")} <= rows
+    out = capsys.readouterr().out
+    assert "pancreas     D95_Gy" in out
