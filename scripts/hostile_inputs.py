@@ -58,6 +58,23 @@ def make_files(d):
 
     sitk.WriteImage(sitk.Flip(sitk.ReadImage(f"{d}/labels.nii.gz"), [False, True, False]), f"{d}/flipped.nii.gz")
     os.makedirs(f"{d}/adir", exist_ok=True)
+    # the clinic's files: a planning series with its structure set and dose, and broken cine / dose / structure files
+    from warpmpm.dicom_rt import write_rtdose, write_rtstruct, write_series
+
+    ref = write_series(c.intensity_image(), f"{d}/series", "MR")
+    masks = {o: c.labels == v for o, v in c.label_map.items()}
+    write_rtstruct(f"{d}/RS.dcm", ref, masks, {"pancreas": "Pancreas", "stomach": "Stomach", "duodenum": "Duodenum",
+                                               "left_kidney": "Kidney_L"})
+    write_rtstruct(f"{d}/RS_nopancreas.dcm", ref, {o: m for o, m in masks.items() if o != "pancreas"})
+    write_rtdose(f"{d}/RD.dcm", ref, np.full(c.labels.shape, 2.0))
+    other = write_series(c.intensity_image(), f"{d}/other_series", "MR")  # the same pixels, another frame of reference
+    write_rtstruct(f"{d}/RS_other.dcm", other, masks)
+    os.makedirs(f"{d}/badcine", exist_ok=True)
+    open(f"{d}/badcine/frame.bin", "wb").write(b"\x00\x01\x00\x00\x00" + b"junk" * 10)
+    open(f"{d}/junk.bin", "wb").write(b"not a cine frame")
+    open(f"{d}/beam.csv", "w").write("frame,beam_on_s\n0,-1\n")
+    os.makedirs(f"{d}/cine", exist_ok=True)
+    sitk.WriteImage(c.intensity_image()[20:21, :, :], f"{d}/cine/frame_000.nii.gz")
 
 
 def cases(d):
@@ -148,6 +165,33 @@ def cases(d):
          "error"),
         ("a negative rigid-mode cube (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; "
                                               "SolverConfig(rigid_mode_aggregate_mm=-5.0)"], "error"),
+        ("cine-info: a junk .bin", w + ["cine-info", f"{d}/junk.bin"], "error"),
+        ("cine-info: a missing file", w + ["cine-info", f"{d}/nope.dcm"], "error"),
+        ("track: a cine folder holding a broken .bin", w + ["track", "--image", f"{d}/image.nii.gz", "--labels", f"{d}/labels.nii.gz",
+                                                          "--cine", f"{d}/badcine", "--out", f"{d}/t1"], "error"),
+        ("track: --rtstruct without a DICOM series", w + ["track", "--image", f"{d}/image.nii.gz", "--rtstruct", f"{d}/RS.dcm",
+                                                         "--cine", f"{d}/cine", "--out", f"{d}/t2"], "error"),
+        ("track: --rtstruct and --labels both", w + ["track", "--image", f"{d}/series", "--rtstruct", f"{d}/RS.dcm", "--labels",
+                                                   f"{d}/labels.nii.gz", "--cine", f"{d}/cine", "--out", f"{d}/t3"], "error"),
+        ("track: a structure set without the pancreas", w + ["track", "--image", f"{d}/series", "--rtstruct", f"{d}/RS_nopancreas.dcm",
+                                                            "--cine", f"{d}/cine", "--out", f"{d}/t4"], "error"),
+        ("track: a structure set of another scan", w + ["track", "--image", f"{d}/series", "--rtstruct", f"{d}/RS_other.dcm",
+                                                       "--cine", f"{d}/cine", "--out", f"{d}/t5"], "error"),
+        ("track: --structure without '='", w + ["track", "--image", f"{d}/series", "--rtstruct", f"{d}/RS.dcm", "--structure",
+                                               "pancreas", "--cine", f"{d}/cine", "--out", f"{d}/t6"], "error"),
+        ("track: --structure naming an unknown organ", w + ["track", "--image", f"{d}/series", "--rtstruct", f"{d}/RS.dcm",
+                                                           "--structure", "liver=Liver", "--cine", f"{d}/cine", "--out", f"{d}/t7"], "error"),
+        ("track: --structure naming a missing ROI", w + ["track", "--image", f"{d}/series", "--rtstruct", f"{d}/RS.dcm",
+                                                        "--structure", "pancreas=GTV", "--cine", f"{d}/cine", "--out", f"{d}/t8"], "error"),
+        ("track: a junk --dose", w + ["track", "--image", f"{d}/image.nii.gz", "--labels", f"{d}/labels.nii.gz", "--dose",
+                                     f"{d}/junk.nii.gz", "--cine", f"{d}/cine", "--out", f"{d}/t9"], "error"),
+        ("track: a negative beam-on time", w + ["track", "--image", f"{d}/image.nii.gz", "--labels", f"{d}/labels.nii.gz", "--dose",
+                                               f"{d}/RD.dcm", "--beam-on", f"{d}/beam.csv", "--cine", f"{d}/cine", "--out", f"{d}/t10"],
+         "error"),
+        ("track: --beam-on without --dose", w + ["track", "--image", f"{d}/image.nii.gz", "--labels", f"{d}/labels.nii.gz",
+                                                "--beam-on", f"{d}/beam.csv", "--cine", f"{d}/cine", "--out", f"{d}/t11"], "error"),
+        ("track: --trackrad-centre on a plain cine", w + ["track", "--image", f"{d}/image.nii.gz", "--labels", f"{d}/labels.nii.gz",
+                                                         "--trackrad-centre", "1,2,3", "--cine", f"{d}/cine", "--out", f"{d}/t12"], "error"),
         ("an unknown rigid-mode coarse basis (API)", ["python", "-c", "from warpmpm.solver import SolverConfig; "
                                                      "SolverConfig(rigid_mode_basis='quadratic')"], "error"),
     ]

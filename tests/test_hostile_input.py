@@ -563,3 +563,29 @@ def test_a_degenerate_registration_names_the_slice_the_user_gave(monkeypatch):
                      baselines=("initial",))
     with pytest.raises(SimulationError, match=rf"sagittal slice {i} gave a degenerate transform"):
         run_case(cfg)
+
+
+def test_hostile_script_clinic_file_cases_are_clear_errors(tmp_path):
+    """scripts/hostile_inputs.py's cases for the clinic's files (broken Unity .bin, structure sets without the pancreas or
+    of another scan, bad --structure / --dose / --beam-on / --trackrad-centre): each one `error:` line, exit 2, nothing
+    written, no traceback."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    root = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
+    spec = importlib.util.spec_from_file_location("hostile_inputs", os.path.join(root, "scripts", "hostile_inputs.py"))
+    h = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(h)
+    d = str(tmp_path)
+    h.make_files(d)
+    exe = os.path.join(os.path.dirname(sys.executable), "warpmpm")
+    outcomes = {}
+    for name, argv, expected in h.cases(d):
+        if not name.startswith(("track:", "cine-info:")):
+            continue
+        before = set(os.listdir(d))
+        proc = subprocess.run([exe] + argv[1:], capture_output=True, text=True, cwd=d, timeout=300)
+        outcomes[name] = h.classify(proc, expected, before, d)
+    assert len(outcomes) >= 14
+    assert all(v == "clear error" for v in outcomes.values()), outcomes
