@@ -352,3 +352,27 @@ def test_track_never_mixes_two_tracks_in_one_folder(series, tmp_path, capsys):
     assert main([*args, "--out", str(old), "--overwrite"]) == 0
     assert sorted(p.name for p in old.iterdir()) == ["labels", "particles.npz", "track.csv"]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".track-")]  # no work folder left behind
+
+
+def test_a_corrupt_frame_is_flagged_and_not_driven(series, tmp_path):
+    """Frame 1 replaced by noise (a failed acquisition): it is not driven, flagged in track.csv with its match, and the
+    estimate holds frame 0's state; the good frames match their references at r^2 above 0.5."""
+    import csv
+
+    import pydicom
+
+    cine = tmp_path / "cine"
+    shutil.copytree(os.path.join(series, "cine"), cine)
+    name = sorted(os.listdir(cine))[1]
+    ds = pydicom.dcmread(cine / name)
+    px = ds.pixel_array
+    ds.PixelData = np.random.default_rng(3).integers(0, max(int(px.max()), 2), px.shape).astype(px.dtype).tobytes()
+    ds.save_as(cine / name)
+    out = str(tmp_path / "track")
+    assert main(["track", "--image", os.path.join(series, "planning", "image.nii.gz"), "--labels",
+                 os.path.join(series, "planning", "labels.nii.gz"), "--cine", str(cine), "--out", out, "--device", "cpu",
+                 "--max-steps", "1500"]) == 0
+    rows = list(csv.DictReader(open(os.path.join(out, "track.csv"))))
+    assert "does not look like the estimate" in rows[1]["reason"] and rows[1]["solver"] == "none"
+    assert float(rows[1]["frame_match"]) < 0.04 and float(rows[0]["frame_match"]) > 0.5 and float(rows[2]["frame_match"]) > 0.5
+    assert rows[1]["pancreas_shift_mm"] == rows[0]["pancreas_shift_mm"]  # held

@@ -99,6 +99,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--registration", default="itk", choices=list(BACKENDS),
                    help="the slice registration's optimiser (registration targets): ITK's gradient descent or Gauss-Newton, "
                    "the same correlation metric")
+    p.add_argument("--no-plane-check", action="store_true",
+                   help="drive every plane's registered motion, unchecked (default: each plane's motion of each organ is checked "
+                   "against the captured planes first and dropped, with a warning, when it makes them match worse)")
     p.add_argument("--registration-passes", type=int, default=1,
                    help="with several driving planes: register them this many times, each later pass against the planning image "
                    "moved by the last pass's combined motion (kept while the planes match better); default 1")
@@ -340,7 +343,7 @@ def config_from_args(a):
     protocol = "field" if a.truth_field is not None else a.protocol
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
                       organs=a.organs, slices=a.slices, protocol=protocol, truth_field=a.truth_field, deformation=a.deformation, targets=a.targets, drive=a.drive,
-                      registration=a.registration, registration_passes=a.registration_passes,
+                      registration=a.registration, registration_passes=a.registration_passes, plane_check=not a.no_plane_check,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
                       solver=SolverConfig(contact=a.contact, friction=a.friction, method=a.solver, cpu_threads=a.threads))

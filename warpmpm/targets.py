@@ -56,14 +56,15 @@ class DriveTargets:
     axes: np.ndarray
 
 
-def slice_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[DrivingSlice], moved) -> DriveTargets:
+def slice_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[DrivingSlice], moved, keep=None) -> DriveTargets:
     """Combine per-slice in-plane targets into one target per driven particle.
 
     ``moved(s, idx)`` gives the targets (len(idx), 3) of the particles ``idx`` on slice ``s``; only their
     in-plane components count. A particle on several slices takes each slice's in-plane components, in
     the least-squares sense where two slices measure the same direction:
     ``x = pinv(sum P_s) sum P_s t_s + (I - Q) x_prev`` with ``P_s`` the slices' plane projectors and
-    ``Q`` the projector onto what they span.
+    ``Q`` the projector onto what they span. ``keep(s, idx)`` (a boolean mask) drops particles from a slice's
+    targets (:func:`warpmpm.plane_check.check_planes`); a particle kept by no slice is not driven.
     """
     positions_mm = np.asarray(positions_mm, dtype=np.float64)
     A = np.zeros((model.n, 3, 3))
@@ -71,12 +72,18 @@ def slice_targets(model: ParticleModel, positions_mm: np.ndarray, slices: list[D
     on_any = np.zeros(model.n, dtype=bool)
     for s in slices:
         idx = driven_indices(model, [s])
+        if keep is not None:
+            idx = idx[keep(s, idx)]
+            if not len(idx):
+                continue
         P = plane_projector(model, s.orientation)
         t = np.asarray(moved(s, idx), dtype=np.float64)
         A[idx] += P
         b[idx] += t @ P.T
         on_any[idx] = True
     idx = np.nonzero(on_any)[0]
+    if not len(idx):
+        return DriveTargets(idx, np.zeros((0, 3)), np.zeros((0, 3, 3)))
     A, b, x = A[idx], b[idx], positions_mm[idx]
     Ainv = np.linalg.pinv(A, rcond=1e-6)
     Q = np.einsum("nij,njk->nik", A, Ainv)
@@ -330,7 +337,7 @@ def _registration_pass(model: ParticleModel, slices: list[DrivingSlice], plannin
 
     targets = slice_targets(model, positions_mm, slices, moved)
     info: dict = {"wall_s": float(np.mean(walls)), "affines": affines, "organ_affines": organ_affines, "fields": fields,
-                  "organ_fields": organ_fields, "method": method, "fallbacks": fallbacks}
+                  "organ_fields": organ_fields, "method": method, "fallbacks": fallbacks, "moved": moved}
     if truth_mm is not None:
         err = in_plane_errors_mm(model, slices, targets.idx, targets.targets_mm, truth_mm)
         info["error_mm"] = float(err.mean()) if err.size else float("nan")

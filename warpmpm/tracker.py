@@ -32,16 +32,21 @@ from .driving import ConvergenceConfig, SliceDrivenEstimator
 from .errors import InputError, InputWarning
 from .images import ORGANS, Case
 from .model import ParticleModel, build_model
-from .registration import BACKENDS, register_slice_organs
+from .registration import BACKENDS, register_slice_organs, slice_metric
 from .rendering import particle_label_map, render_plane, scatter_displacements
 from .solver import SolverConfig
 
 __all__ = ["TRACK_FIELDS", "TrackerConfig", "TrackedFrame", "Tracker", "displacement_field"]
 
 TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "settled", "body_motion_mm", "reason",
-                "wall_s", "rms_residual_mm", "registration_ms",
+                "wall_s", "rms_residual_mm", "frame_match", "registration_ms",
                 "reference_ms", "pancreas_x_mm", "pancreas_y_mm", "pancreas_z_mm", "pancreas_shift_mm"] + [f"max_{o}_mm" for o in ORGANS] + [
                 "field_jacobian_min", "field_folded_voxels"]
+
+
+#: a frame whose registered reference matches it with a squared correlation below this over the organs (|r| < 0.2) is not
+#: driven: a blank, corrupt or foreign frame (synthetic frames of the tracked anatomy match at r^2 above 0.8)
+MIN_FRAME_MATCH = 0.04
 
 
 def _off_scan_message(frame, geometry, organ_distance_mm: np.ndarray, letters: str) -> str:
@@ -208,6 +213,11 @@ class Tracker:
         reg_s = time.perf_counter() - t_reg  # the whole call: refused organs and the fit checks cost time too
         if not whole.ok:
             return self._skipped(n, frame, x, reg_s, ref_s, whole.stop)
+        match = -slice_metric(stored, captured, mask, whole.affine)  # r^2 of the frame and its registered reference
+        if not match >= MIN_FRAME_MATCH:
+            return self._skipped(n, frame, x, reg_s, ref_s, f"the frame does not look like the estimate on its plane (r^2 {match:.3f} "
+                                 f"after registration over the organs, at least {MIN_FRAME_MATCH} needed): a blank, corrupt or "
+                                 "foreign frame?", match=match)
         organ_of = np.asarray(m.organs)[m.organ_index]
 
         def observed(now, then):
@@ -246,9 +256,10 @@ class Tracker:
         return TrackedFrame(res.positions_mm, self._row(n, frame, res.positions_mm, reg_s, ref_s, solver=res.method, steps=res.steps,
                                                         linear_iterations=res.linear_iterations, converged=res.converged,
                                                         settled=res.settled, body_motion_mm=res.body_motion_mm, reason=res.reason,
-                                                        wall_s=res.wall_s, rms_residual_mm=res.final_rms_mm))
+                                                        wall_s=res.wall_s, rms_residual_mm=res.final_rms_mm, frame_match=match))
 
-    def _skipped(self, n: int, frame: CineFrame, x: np.ndarray, reg_s: float, ref_s: float, why: str) -> TrackedFrame:
+    def _skipped(self, n: int, frame: CineFrame, x: np.ndarray, reg_s: float, ref_s: float, why: str,
+                 match: float = float("nan")) -> TrackedFrame:
         """A frame whose slice registration failed: the estimate holds where it was (the frame is flagged in
         ``track.csv``, not hidden), and the motion missed here is measured by the plane's next frame: registered
         against the estimate (which held), or with ``reference="previous-frame"`` against the plane's last good frame."""
@@ -257,7 +268,7 @@ class Tracker:
                       f"state and the plane's next frame is registered against {nxt}", InputWarning, stacklevel=3)
         return TrackedFrame(x.copy(), self._row(n, frame, x, reg_s, ref_s, solver="none", steps=0, linear_iterations=0, converged=False,
                                                 settled=False, body_motion_mm=float("nan"), reason=f"registration failed: {why}", wall_s=0.0,
-                                                rms_residual_mm=float("nan")))
+                                                rms_residual_mm=float("nan"), frame_match=match))
 
     def _row(self, n: int, frame: CineFrame, positions_mm: np.ndarray, reg_s: float, ref_s: float, **solve) -> dict:
         """A frame's ``track.csv`` row: what the solve did (``solve``), the registration's and the reference's

@@ -80,6 +80,10 @@ class CaseConfig:
     """The slice registration's optimiser for the ``registration*`` targets
     (:func:`warpmpm.registration.register_slices`): ITK's gradient descent or Gauss-Newton, the same correlation
     metric."""
+    plane_check: bool = True
+    """``registration*`` targets, one registration pass: check each (plane, organ) pair's registered motion against the
+    captured planes before it drives anything, and drop the pairs that make the planes match worse
+    (:mod:`warpmpm.plane_check`); the ``propagate_planes`` baseline copies the same checked motion."""
     registration_passes: int = 1
     """With several driving planes (``registration*`` targets), how many times the slices are registered: each
     later pass against the planning image moved by the last pass's motion of every particle, all planes combined,

@@ -74,6 +74,12 @@ class EstimateScores(Scores):
     min_det_f: float = float("nan")
     linear_iterations: int = 0
     finished_by: str = "explicit"
+    plane_match: float = float("nan")
+    """Registration targets: the mean correlation of the captured planes with the planning image moved to the estimate
+    (:mod:`warpmpm.plane_check`); ``plane_match_unmoved``: the same for no motion."""
+    plane_match_unmoved: float = float("nan")
+    flag: str = ""
+    """Non-empty when the estimate is worse than no motion by its own measure (or nothing could be driven)."""
 
 
 @dataclass(kw_only=True)

@@ -11,7 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..driving import ConvergenceConfig, SliceDrivenEstimator
+from ..driving import ConvergenceConfig, DriveResult, SliceDrivenEstimator
 from ..errors import InputError, InputWarning
 from ..groundtruth import GroundTruth
 from ..metrics import evaluate
@@ -119,15 +119,29 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
                                extra_points_mm=np.vstack([targets, gt_pos]), callback=on_step)
     progress.say(f"estimate: {len(idx):,} particles driven on {', '.join(str(prep.to_input(s)) for s in slices)}, "
                  f"cell {est.mpm.dx_mm:.2f} mm, grid {'x'.join(map(str, est.mpm.grid_shape))}")
-    res = est.estimate(targets, axes=axes)
+    if len(idx):
+        res = est.estimate(targets, axes=axes)
+    else:  # the plane check dropped every plane's motion: nothing is driven, the estimate is no motion
+        res = DriveResult(model.positions_mm.copy(), 0, 0.0, np.zeros(0), np.zeros(0), True,
+                          "nothing driven (no plane passed the plane check)", settled=True, body_motion_mm=0.0, min_det_f=1.0)
     progress.done(f"estimate: {res.steps} steps in {res.wall_s:.1f} s ({res.reason})")
+    match, unmoved, flag = float("nan"), float("nan"), ""
+    if tg.plane_match is not None:  # the estimate's own measure: the captured planes against it rendered on them
+        match, unmoved = tg.plane_match(res.positions_mm), tg.plane_match(None)
+        if not len(idx):
+            flag = "no plane's motion passed the plane check: the estimate is no motion"
+        elif match < unmoved - 0.005:
+            flag = (f"worse than no motion by its own measure: the captured planes match it rendered on them with mean "
+                    f"correlation {match:.3f}, the unmoved planning image {unmoved:.3f}")
+        if flag:
+            warnings.warn(f"estimate: {flag}", InputWarning, stacklevel=2)
     m = evaluate(res.positions_mm[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step)
     results["estimate"] = EstimateScores(
         **{k: m[k] for k in ("error_mm", "p95_mm", "max_mm", "dice", "n")}, error_offslice_mm=offslice_error(res.positions_mm),
         steps=res.steps, wall_s=res.wall_s, converged=res.converged, reason=res.reason,
         rms_residual_mm=res.final_rms_mm, rel_residual=res.final_rel_residual, ms_per_step=1e3 * res.wall_s / max(res.steps, 1),
         settled=res.settled, body_motion_mm=res.body_motion_mm, min_det_f=res.min_det_f,
-        linear_iterations=res.linear_iterations, finished_by=res.method,
+        linear_iterations=res.linear_iterations, finished_by=res.method, plane_match=match, plane_match_unmoved=unmoved, flag=flag,
         organs=organ_scores(model, res.positions_mm, gt_pos, on_plane, truth_distances=truth_d))
     out = RunResult(
         case=prep.case.name, organs=model.letters, slices=[str(prep.to_input(s)) for s in slices], protocol=cfg.protocol,

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..images import COMBINATIONS
@@ -32,6 +34,8 @@ def format_table(out: RunResult) -> str:
             label += " (FAILED: fell back to no motion)"
         elif name == "completion" and not j.get("converged", True):
             label += f" (NOT converged: residual {j['residual']:.1e})"
+        elif name == "estimate" and j.get("flag"):
+            label += " (FLAGGED: worse than no motion by its own measure)" if "worse" in j["flag"] else " (nothing driven)"
         elif j.get("uncertain"):
             label += f" (uncertain: two registrations disagree by {j['disagreement_mm']:.1f} mm)"
         rows.append(f"| {label} | {r.error_mm:.2f} | {r.error_offslice_mm:.2f} | {r.p95_mm:.2f} | {r.dice:.3f} | {steps} | {wall} |")
@@ -57,6 +61,15 @@ def format_table(out: RunResult) -> str:
     if out.registration is not None:
         r = out.registration
         tail += f"\nregistration: in-plane error of the slice's pancreas particles {r['error_mm']:.2f} mm, {r['wall_s'] * 1e3:.1f} ms per slice"
+        pc = r.get("plane_check")
+        if pc:
+            dropped = ", ".join(pc["dropped"]) or "none"
+            tail += (f"\nplane check: planes' match (mean correlation) unmoved {pc['match_none']:.3f}, every plane's motion "
+                     f"{pc['match_all']:.3f}, kept {pc['match_kept']:.3f}; not driven: {dropped}")
+    if not math.isnan(getattr(est, "plane_match", float("nan"))):
+        tail += f"\nestimate's own measure: planes' match {est.plane_match:.3f} (unmoved {est.plane_match_unmoved:.3f})"
+        if est.flag:
+            tail += f"; FLAGGED: {est.flag}"
     from .organs import format_organ_table
 
     organs = "\n\nevery organ (pancreas: the target; stomach, duodenum, left kidney: organs at risk):\n" + format_organ_table(out.results)

@@ -27,7 +27,7 @@ from ..groundtruth import GroundTruth, paper_affine
 from ..model import ParticleModel
 from ..slices import DrivingSlice, InPlaneAffine, driven_indices, in_plane_axes
 from ..targets import (DriveTargets, affine_drive_targets, combine_planes, in_plane_errors_mm, in_plane_truth_targets,
-                       registration_targets)
+                       registration_targets, slice_targets)
 from .baselines import propagate
 from .capture import planning_and_gt_volumes
 from .case import PreparedCase
@@ -63,6 +63,9 @@ class RunTargets:
     fields: dict = field(default_factory=dict)
     organ_fields: dict = field(default_factory=dict)
     combined_mm: np.ndarray | None = None
+    plane_match: object = None
+    """For the registration kinds: ``plane_match(positions_mm)``, the mean correlation of the captured planes with the
+    planning image moved to ``positions_mm`` (None: unmoved), the estimate's own measure (:mod:`warpmpm.plane_check`)."""
 
     @property
     def idx(self) -> np.ndarray:
@@ -139,6 +142,18 @@ def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_po
     drive, info = registration_targets(model, slices, planning, warped, case.labels, case.geometry, values, prep.centre_mm,
                                        truth_mm=gt_pos, method=method, backend=cfg.registration, passes=cfg.registration_passes,
                                        slice_name=lambda s: f"{s.orientation} slice {prep.to_input(s).index}")
+    moved = info.pop("moved")
+    if cfg.plane_check and info.get("passes", 1) == 1:  # each plane's motion checked against the captured planes
+        from ..plane_check import check_planes, combined_motion
+
+        pc, keep = check_planes(model, slices, moved, planning, warped, case.labels, case.geometry, values, prep.centre_mm,
+                                name=lambda s: str(prep.to_input(s)))
+        info["plane_check"] = pc.to_json()
+        if pc.dropped:
+            drive = slice_targets(model, model.positions_mm, slices, moved, keep)
+            info["combined_mm"] = combined_motion(model, model.positions_mm, slices, moved, keep)
+            err = in_plane_errors_mm(model, slices, drive.idx, drive.targets_mm, gt_pos) if len(drive.idx) else np.zeros(0)
+            info["error_mm"] = float(err.mean()) if err.size else float("nan")
     first = info.pop("first_pass", None)  # several passes: the baselines copy the planes' motion against planning
     affines, organ_affines, fields = info.pop("affines"), info.pop("organ_affines"), info.pop("fields")
     organ_fields = info.pop("organ_fields")
@@ -148,5 +163,11 @@ def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_po
     info["organ_affines"] = {str(prep.to_input(s)): {o: a.to_json() for o, a in d.items()} for s, d in organ_affines.items()}
     info["organ_fields"] = {str(prep.to_input(s)): {o: {"min_jacobian": f.min_jacobian, "wall_s": f.wall_s} for o, f in d.items()}
                             for s, d in organ_fields.items()}
+    from ..plane_check import plane_match
+
+    def match(positions_mm):
+        return float(np.mean(plane_match(model, slices, planning, warped, case.labels, case.geometry, values, prep.centre_mm,
+                                         positions_mm)))
+
     return RunTargets(drive, affines, organ_affines, info, info.get("error_mm", float("nan")), fields, organ_fields,
-                      combined if len(slices) > 1 else None)
+                      combined if len(slices) > 1 else None, match)
