@@ -41,7 +41,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
     idx, targets = tg.idx, tg.targets_mm
     axes = tg.axes(cfg.drive) if cfg.targets != "gt" else None
     pmask = model.organ_slice("pancreas")
-    exclude_driven = cfg.exclude_driven if cfg.exclude_driven is not None else len(slices) > 1
+    exclude_driven = bool(cfg.exclude_driven)  # the same error set for every number of planes
     excl = np.zeros(model.n, dtype=bool)
     if exclude_driven:
         excl[idx] = True

@@ -21,7 +21,7 @@ MULTI_NAMES = {"a": "axial only", "ac": "axial + coronal", "as": "axial + sagitt
 
 def format_table(out: RunResult) -> str:
     """The run's table: each baseline and the estimate with error, p95, Dice (and steps, time)."""
-    rows = ["| method | error mm | off-slice error mm | p95 mm | Dice | steps | wall s |", "|---|---|---|---|---|---|---|"]
+    rows = ["| method | error mm (all particles) | off-slice error mm (driven left out) | p95 mm | Dice | steps | wall s |", "|---|---|---|---|---|---|---|"]
     for name in ("initial", "propagate", "propagate_affine", "propagate_planes", "rigid", "volume_registration", "completion", "estimate"):
         r = out.results.get(name)
         if r is None:
