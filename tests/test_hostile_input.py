@@ -589,3 +589,34 @@ def test_hostile_script_clinic_file_cases_are_clear_errors(tmp_path):
         outcomes[name] = h.classify(proc, expected, before, d)
     assert len(outcomes) >= 14
     assert all(v == "clear error" for v in outcomes.values()), outcomes
+
+
+def test_the_out_of_volume_check_on_a_label_map_flipped_against_its_image(tmp_path):
+    """Labels on a grid whose y axis runs the other way (the same anatomy): a few mm of motion passes, a motion out of the
+    scan is refused, naming the pancreas's and the scan's world boxes."""
+    import SimpleITK as sitk
+
+    from warpmpm.experiment.truth import check_inside_imaged_volume
+    from warpmpm.groundtruth import GroundTruth
+    from warpmpm.images import write_case
+    from warpmpm.phantom import make_phantom
+
+    c = make_phantom(resolution=3.0)
+    write_case(c, str(tmp_path / "labels.nii.gz"), str(tmp_path / "image.nii.gz"))
+    lab = sitk.ReadImage(str(tmp_path / "labels.nii.gz"))
+    d = np.array(lab.GetDirection()).reshape(3, 3)
+    d[:, 1] *= -1
+    flipped = sitk.GetImageFromArray(np.ascontiguousarray(sitk.GetArrayFromImage(lab)[:, ::-1, :]))
+    flipped.SetSpacing(lab.GetSpacing())
+    flipped.SetOrigin(lab.TransformIndexToPhysicalPoint((0, lab.GetSize()[1] - 1, 0)))
+    flipped.SetDirection(tuple(d.ravel()))
+    (tmp_path / "flip").mkdir()
+    sitk.WriteImage(flipped, str(tmp_path / "flip" / "labels.nii.gz"))
+    with pytest.warns(InputWarning, match="another grid"):
+        prep = prepare_case(CaseConfig(labels=str(tmp_path / "flip" / "labels.nii.gz"), image=str(tmp_path / "image.nii.gz"),
+                                       preset="amos", organs="p"))
+    m = prep.full_model
+    check_inside_imaged_volume(prep, GroundTruth(m, m.positions_mm + [0.0, 3.0, -4.0], "contact"))
+    gone = m.positions_mm + [0.0, 0.0, prep.input_geometry.size[2] * prep.input_geometry.spacing_mm[2]]
+    with pytest.raises(InputError, match=r"pancreas spans \[.*\] mm .* the scan \["):
+        check_inside_imaged_volume(prep, GroundTruth(m, gone, "contact"))

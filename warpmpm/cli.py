@@ -559,6 +559,12 @@ def cmd_track(a) -> int:
     from .solver import SolverConfig
     from .tracker import Tracker, TrackerConfig
 
+    bad = sorted(set(a.organs) - set("psdl"))
+    if bad or not a.organs:
+        raise InputError(f"--organs {a.organs!r}: letters from p (pancreas), s (stomach), d (duodenum), l (left kidney); "
+                         f"{', '.join(repr(b) for b in bad) or 'none given'} is not one")
+    if a.max_steps < 1:
+        raise InputError(f"--max-steps must be at least 1, got {a.max_steps}")
     if a.rtstruct:
         from .dicom_rt import case_from_rtstruct
 

@@ -88,11 +88,15 @@ def check_inside_imaged_volume(prep: PreparedCase, gt: GroundTruth) -> None:
     outside = np.any((ijk < -0.5) | (ijk > np.asarray(geo.size) - 0.5), axis=1)
     share = float(outside.mean())
     if share > MAX_OUTSIDE_SHARE:
-        ext0 = np.ptp(gt.model.positions_mm[pan], axis=0).round(0).tolist()
-        ext = np.ptp(gt.positions_mm[pan], axis=0).round(0).tolist()
-        raise InputError(f"the {gt.protocol} ground truth moves {share:.0%} of the pancreas out of the imaged volume "
-                         f"(its extent goes from {ext0} to {ext} mm): the scan does not cover enough around the pancreas "
-                         "for this motion; use a scan that extends further beyond it, or the paper protocol")
+        corners = geo.index_to_world(np.array([[-0.5 + (geo.size[a] * b[a]) for a in range(3)] for b in np.ndindex(2, 2, 2)]))
+
+        def box(p):
+            return "[" + ", ".join(f"{lo:.0f}..{hi:.0f}" for lo, hi in zip(p.min(0), p.max(0))) + "]"
+
+        raise InputError(f"the {gt.protocol} ground truth moves {share:.0%} of the pancreas out of the imaged volume: the "
+                         f"pancreas spans {box(gt.model.positions_mm[pan])} mm (x, y, z, world LPS) at planning and "
+                         f"{box(gt.positions_mm[pan])} mm moved, the scan {box(corners)} mm; the scan does not cover enough "
+                         "around the pancreas for this motion: use a scan that extends further beyond it, or the paper protocol")
 
 
 def gt_for_model(gt: GroundTruth, model: ParticleModel) -> np.ndarray:
