@@ -38,7 +38,8 @@ from .solver import SolverConfig
 
 __all__ = ["TRACK_FIELDS", "TrackerConfig", "TrackedFrame", "Tracker", "displacement_field"]
 
-TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "settled", "body_motion_mm", "reason",
+TRACK_FIELDS = ["frame", "time_s", "plane", "file", "solver", "steps", "linear_iterations", "converged", "slice_converged", "settled",
+                "body_motion_mm", "reason",
                 "wall_s", "rms_residual_mm", "frame_match", "registration_ms",
                 "reference_ms", "pancreas_x_mm", "pancreas_y_mm", "pancreas_z_mm", "pancreas_shift_mm"] + [f"max_{o}_mm" for o in ORGANS] + [
                 "field_jacobian_min", "field_folded_voxels"]
@@ -254,7 +255,8 @@ class Tracker:
         self.plane_propagated[frame.plane] = self.propagated.copy()
         self.plane_labels[frame.plane] = self.labels_now
         return TrackedFrame(res.positions_mm, self._row(n, frame, res.positions_mm, reg_s, ref_s, solver=res.method, steps=res.steps,
-                                                        linear_iterations=res.linear_iterations, converged=res.converged,
+                                                        linear_iterations=res.linear_iterations,
+                                                        converged=bool(res.converged and res.settled), slice_converged=res.converged,
                                                         settled=res.settled, body_motion_mm=res.body_motion_mm, reason=res.reason,
                                                         wall_s=res.wall_s, rms_residual_mm=res.final_rms_mm, frame_match=match))
 
@@ -267,6 +269,7 @@ class Tracker:
         warnings.warn(f"cine frame {frame.path}: the slice registration failed ({why}); the estimate holds the last frame's "
                       f"state and the plane's next frame is registered against {nxt}", InputWarning, stacklevel=3)
         return TrackedFrame(x.copy(), self._row(n, frame, x, reg_s, ref_s, solver="none", steps=0, linear_iterations=0, converged=False,
+                                                slice_converged=False,
                                                 settled=False, body_motion_mm=float("nan"), reason=f"registration failed: {why}", wall_s=0.0,
                                                 rms_residual_mm=float("nan"), frame_match=match))
 

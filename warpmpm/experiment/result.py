@@ -65,6 +65,7 @@ class EstimateScores(Scores):
     steps: int
     wall_s: float
     converged: bool
+    """The whole model settled and the driven particles met the stopping rule (whatever the solver)."""
     reason: str
     rms_residual_mm: float
     rel_residual: float
@@ -74,6 +75,8 @@ class EstimateScores(Scores):
     min_det_f: float = float("nan")
     linear_iterations: int = 0
     finished_by: str = "explicit"
+    slice_converged: bool | None = None
+    """The driven particles met the stopping rule (``reason``), whether or not the rest of the model had settled."""
     plane_match: float = float("nan")
     """Registration targets: the mean correlation of the captured planes with the planning image moved to the estimate
     (:mod:`warpmpm.plane_check`); ``plane_match_unmoved``: the same for no motion."""

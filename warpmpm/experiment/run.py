@@ -125,6 +125,10 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         res = DriveResult(model.positions_mm.copy(), 0, 0.0, np.zeros(0), np.zeros(0), True,
                           "nothing driven (no plane passed the plane check)", settled=True, body_motion_mm=0.0, min_det_f=1.0)
     progress.done(f"estimate: {res.steps} steps in {res.wall_s:.1f} s ({res.reason})")
+    if res.converged and not res.settled:  # the driven slice stopped; the body had not: not an equilibrium
+        warnings.warn(f"estimate: the driven particles met the stopping rule ({res.reason}) but the model was still moving "
+                      f"({res.body_motion_mm:.2f} mm at the 99th percentile): reported not converged (--wait-settled runs on "
+                      "until it settles)", InputWarning, stacklevel=2)
     match, unmoved, flag = float("nan"), float("nan"), ""
     if tg.plane_match is not None:  # the estimate's own measure: the captured planes against it rendered on them
         match, unmoved = tg.plane_match(res.positions_mm), tg.plane_match(None)
@@ -138,7 +142,8 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
     m = evaluate(res.positions_mm[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step)
     results["estimate"] = EstimateScores(
         **{k: m[k] for k in ("error_mm", "p95_mm", "max_mm", "dice", "n")}, error_offslice_mm=offslice_error(res.positions_mm),
-        steps=res.steps, wall_s=res.wall_s, converged=res.converged, reason=res.reason,
+        steps=res.steps, wall_s=res.wall_s, converged=bool(res.converged and res.settled), slice_converged=bool(res.converged),
+        reason=res.reason,
         rms_residual_mm=res.final_rms_mm, rel_residual=res.final_rel_residual, ms_per_step=1e3 * res.wall_s / max(res.steps, 1),
         settled=res.settled, body_motion_mm=res.body_motion_mm, min_det_f=res.min_det_f,
         linear_iterations=res.linear_iterations, finished_by=res.method, plane_match=match, plane_match_unmoved=unmoved, flag=flag,

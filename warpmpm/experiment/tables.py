@@ -44,7 +44,9 @@ def format_table(out: RunResult) -> str:
     head = (f"case {out.case}, organs {out.organs}, slices {','.join(out.slices)}, {truth}, targets {out.targets} (drive {out.drive}), device {out.device}, "
             f"particles {sum(out.n_particles.values())} ({out.n_particles}), driven {out.n_driven}")
     est = out.estimate
-    state = "converged" if est.converged else ("STALLED" if est.reason == "stalled" else "NOT converged")
+    state = ("converged" if est.converged else "STALLED" if est.reason == "stalled" else
+             "NOT converged: the driven particles stopped but the model had not settled" if getattr(est, "slice_converged", False)
+             else "NOT converged")
     if getattr(est, "finished_by", "explicit") == "quasistatic":
         tail = (f"estimate (quasi-static): {state} ({est.reason}) in {est.steps} Newton iterations, {est.ms_per_step:.1f} ms each, "
                 f"RMS residual {est.rms_residual_mm:.3f} mm; "
