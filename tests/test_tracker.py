@@ -376,3 +376,42 @@ def test_a_corrupt_frame_is_flagged_and_not_driven(series, tmp_path):
     assert "does not look like the estimate" in rows[1]["reason"] and rows[1]["solver"] == "none"
     assert float(rows[1]["frame_match"]) < 0.04 and float(rows[0]["frame_match"]) > 0.5 and float(rows[2]["frame_match"]) > 0.5
     assert rows[1]["pancreas_shift_mm"] == rows[0]["pancreas_shift_mm"]  # held
+
+
+def test_cine_folders_a_careless_export_makes(series, tmp_path):
+    """A frame copied twice is read once (a warning); two different frames of one plane at one time, or frames of another
+    frame of reference, are refused naming the files; a blank frame is flagged in track.csv and the series goes on."""
+    import csv
+
+    import pydicom
+
+    src = os.path.join(series, "cine")
+    names = sorted(os.listdir(src))
+    dup = tmp_path / "dup"
+    shutil.copytree(src, dup)
+    shutil.copy(dup / names[1], dup / "copy_of_1.dcm")
+    with pytest.warns(Warning, match="is a copy of"):
+        assert len(read_cine(str(dup))) == 3
+    ds = pydicom.dcmread(dup / "copy_of_1.dcm")
+    ds.PixelData = (ds.pixel_array // 2).astype(ds.pixel_array.dtype).tobytes()
+    ds.save_as(dup / "copy_of_1.dcm")
+    with pytest.raises(InputError, match="two different frames of one plane at the same time"):
+        read_cine(str(dup))
+    other = tmp_path / "other"
+    shutil.copytree(src, other)
+    ds = pydicom.dcmread(other / names[2])
+    ds.FrameOfReferenceUID = "1.2.826.0.1.3680043.2.1125.99"
+    ds.save_as(other / names[2])
+    with pytest.raises(InputError, match="two series .* another frame of reference"):
+        read_cine(str(other))
+    blank = tmp_path / "blank"
+    shutil.copytree(src, blank)
+    ds = pydicom.dcmread(blank / names[1])
+    ds.PixelData = np.zeros_like(ds.pixel_array).tobytes()
+    ds.save_as(blank / names[1])
+    out = str(tmp_path / "track")
+    assert main(["track", "--image", os.path.join(series, "planning", "image.nii.gz"), "--labels",
+                 os.path.join(series, "planning", "labels.nii.gz"), "--cine", str(blank), "--out", out, "--device", "cpu",
+                 "--max-steps", "600"]) == 0
+    rows = list(csv.DictReader(open(os.path.join(out, "track.csv"))))
+    assert [r["solver"] for r in rows][1] == "none" and "blank or constant" in rows[1]["reason"] and rows[2]["solver"] != "none"

@@ -70,6 +70,8 @@ class CineFrame:
     source: str = "image"
     time_from: str = "file order"
     instance: int = 0
+    frame_of_reference: str = ""
+    patient: str = ""
 
     def slice_2d(self, volume_image: sitk.Image | None = None, interpolator=sitk.sitkLinear) -> sitk.Image:
         """The frame (or ``volume_image`` resampled on the frame's plane) as a 2D image in centred in-plane mm."""
@@ -220,6 +222,9 @@ def _dicom_frame(path: str) -> CineFrame:
         time_s, time_from = _name_time(path)
     frame = _frame(path, image, time_s, thickness, source="dicom", time_from=time_from)
     frame.instance = _dicom_int(reader, "0020|0013")
+    for tag, attr in (("0020|0052", "frame_of_reference"), ("0010|0020", "patient")):
+        if reader.HasMetaDataKey(tag):
+            setattr(frame, attr, str(reader.GetMetaData(tag)).strip())
     return frame
 
 
@@ -291,6 +296,13 @@ def read_cine(folder: str) -> list[CineFrame]:
         raise InputError(f"{folder} mixes kinds of cine file ({', '.join(sorted(kinds))}); keep one kind per series (the "
                          "Unity .bin and its DICOM export of a frame are the same frame)")
     frames = [read_frame(p) for p in paths]
+    for attr, what in (("frame_of_reference", "frame of reference (scanner coordinates)"), ("patient", "patient ID")):
+        values = {getattr(f, attr) for f in frames if getattr(f, attr)}
+        if len(values) > 1:
+            a = next(f for f in frames if getattr(f, attr))
+            b = next(f for f in frames if getattr(f, attr) and getattr(f, attr) != getattr(a, attr))
+            raise InputError(f"cine frames of two series in {folder}: {os.path.basename(a.path)} and {os.path.basename(b.path)} "
+                             f"have another {what} ({getattr(a, attr)} vs {getattr(b, attr)}); keep one session's cine per folder")
     timed = all(np.isfinite(f.time_s) for f in frames)
     if not timed:  # no time in some file: the order of the instance numbers, then of the file names; one s apart
         order = sorted(range(len(frames)), key=lambda n: (frames[n].instance, n))
@@ -305,6 +317,7 @@ def read_cine(folder: str) -> list[CineFrame]:
             if f.time_s < 43200:
                 f.time_s += 86400.0
     frames.sort(key=lambda f: f.time_s)
+    frames = _without_duplicates(frames)
     t0 = frames[0].time_s
     for f in frames:
         f.time_s -= t0
@@ -324,6 +337,29 @@ def read_cine(folder: str) -> list[CineFrame]:
             planes.append((n, off, f.image.GetSize()))
             f.plane = len(planes) - 1
     return frames
+
+
+def _without_duplicates(frames: list[CineFrame]) -> list[CineFrame]:
+    """Frames in time order less exact copies (the same time, plane and pixels: a file copied twice), with a warning;
+    two different frames at the same time on the same plane are refused (which one was acquired?)."""
+    import warnings
+
+    from .errors import InputWarning
+
+    out = [frames[0]]
+    for f in frames[1:]:
+        last = out[-1]
+        same_plane = abs(abs(float(f.normal @ last.normal)) - 1) < 1e-4 and abs(float((f.centre_mm - last.centre_mm) @ f.normal)) < 0.5
+        if same_plane and abs(f.time_s - last.time_s) < 1e-4 and f.time_from != "file order":
+            if (f.image.GetSize() == last.image.GetSize()
+                    and np.array_equal(sitk.GetArrayViewFromImage(f.image), sitk.GetArrayViewFromImage(last.image))):
+                warnings.warn(f"cine frame {f.path} is a copy of {last.path} (the same time, plane and pixels): read once",
+                              InputWarning, stacklevel=3)
+                continue
+            raise InputError(f"cine frames {last.path} and {f.path} are two different frames of one plane at the same time "
+                             f"({f.time_s:.4f} s); remove the one that does not belong to the series")
+        out.append(f)
+    return out
 
 
 def _dicom_int(reader, tag: str) -> int:

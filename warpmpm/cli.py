@@ -536,7 +536,7 @@ def _beam_on(path: str, n_frames: int) -> list[float]:
     return weights
 
 
-def _dicom_writer(case, a, work):
+def _dicom_writer(case, a, work, frames=()):
     """The planning series the DICOM outputs refer to: the user's (a DICOM --image), else the planning image written as one."""
     from .dicom_rt import FrameDicomWriter, read_series_reference, write_series
     from .images import grid_differences
@@ -551,7 +551,8 @@ def _dicom_writer(case, a, work):
     else:
         ref = write_series(case.intensity_image(), os.path.join(work, "dicom", "planning"), modality=a.modality)
     names = case.meta.get("roi_names") or {}
-    return FrameDicomWriter(ref, names)
+    cine_for = next((f.frame_of_reference for f in frames if getattr(f, "frame_of_reference", "")), None)
+    return FrameDicomWriter(ref, names, cine_for)
 
 
 def cmd_track(a) -> int:
@@ -622,7 +623,7 @@ def cmd_track(a) -> int:
 
     work = tempfile.mkdtemp(prefix=".track-", dir=parent)
     try:
-        dicom = _dicom_writer(case, a, work) if a.dicom else None
+        dicom = _dicom_writer(case, a, work, frames) if a.dicom else None
         rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder, dicom=dicom, dose=dose,
                            dose_weights=weights)
         if dose is not None and dicom is not None:

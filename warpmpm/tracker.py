@@ -209,8 +209,11 @@ class Tracker:
         captured = frame.slice_2d()
         mask, own = self._organ_masks(frame, self.labels_now if by_estimate else self.plane_labels.get(frame.plane, self.case.labels))
         t_reg = time.perf_counter()
-        whole, per_organ = register_slice_organs(stored, captured, frame.centre_mm, mask, own, backend=self.config.registration,
-                                                 linear_prior=self.config.registration_linear_prior)
+        try:
+            whole, per_organ = register_slice_organs(stored, captured, frame.centre_mm, mask, own, backend=self.config.registration,
+                                                     linear_prior=self.config.registration_linear_prior)
+        except InputError as exc:  # a blank or constant frame: flagged and not driven, the series goes on
+            return self._skipped(n, frame, x, time.perf_counter() - t_reg, ref_s, str(exc))
         reg_s = time.perf_counter() - t_reg  # the whole call: refused organs and the fit checks cost time too
         if not whole.ok:
             return self._skipped(n, frame, x, reg_s, ref_s, whole.stop)

@@ -131,7 +131,11 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
         if fmt == "nifti":
             sitk.WriteImage(frame, os.path.join(cine, f"frame_{k:04d}_{orientation}.nii.gz"))
         else:
-            _write_dicom_frame(frame, os.path.join(cine, f"frame_{k:04d}.dcm"), k, t, thickness_mm, case.image)
+            if k == 0:
+                from pydicom.uid import generate_uid
+
+                uids = {"0020|000d": generate_uid(), "0020|000e": generate_uid(), "0020|0052": generate_uid()}
+            _write_dicom_frame(frame, os.path.join(cine, f"frame_{k:04d}.dcm"), k, t, thickness_mm, case.image, uids)
         from ..rendering import particle_label_map
 
         lab = particle_label_map(model, pos, {o: case.label_map[o] for o in model.organs})
@@ -154,10 +158,12 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
     return params
 
 
-def _write_dicom_frame(frame: sitk.Image, path: str, k: int, t: float, thickness_mm: float, planning: np.ndarray) -> None:
+def _write_dicom_frame(frame: sitk.Image, path: str, k: int, t: float, thickness_mm: float, planning: np.ndarray,
+                       uids: dict | None = None) -> None:
     """A frame as a 2D MR DICOM file: the thin axis last (so the writer's position and orientation place the
     plane), intensities mapped linearly to 0..4000 with the planning image's range (16-bit), acquisition time
-    ``t`` seconds after 10:00:00, instance number ``k + 1``."""
+    ``t`` seconds after 10:00:00, instance number ``k + 1``; ``uids``: the series' study, series and frame of reference
+    UIDs (one session, as a scanner writes them), patient ID WARPMPM-SYNTHETIC."""
     thin = [a for a in range(3) if frame.GetSize()[a] == 1][0]
     order = [a for a in range(3) if a != thin] + [thin]
     img = sitk.PermuteAxes(frame, order)
@@ -168,7 +174,7 @@ def _write_dicom_frame(frame: sitk.Image, path: str, k: int, t: float, thickness
     hh, rest = divmod(10 * 3600 + t, 3600)
     mm, ss = divmod(rest, 60)
     for tag, value in {"0008|0060": "MR", "0008|0032": f"{int(hh):02d}{int(mm):02d}{ss:09.6f}", "0020|0013": str(k + 1),
-                       "0018|0050": f"{thickness_mm:.3f}"}.items():
+                       "0018|0050": f"{thickness_mm:.3f}", "0010|0020": "WARPMPM-SYNTHETIC", **(uids or {})}.items():
         out.SetMetaData(tag, value)
     w = sitk.ImageFileWriter()
     w.KeepOriginalImageUIDOn()
