@@ -620,3 +620,17 @@ def test_the_out_of_volume_check_on_a_label_map_flipped_against_its_image(tmp_pa
     gone = m.positions_mm + [0.0, 0.0, prep.input_geometry.size[2] * prep.input_geometry.spacing_mm[2]]
     with pytest.raises(InputError, match=r"pancreas spans \[.*\] mm .* the scan \["):
         check_inside_imaged_volume(prep, GroundTruth(m, gone, "contact"))
+
+
+def test_a_long_stage_in_a_log_says_its_pace_and_the_most_it_can_take():
+    """Not on a terminal, a long estimate still writes where it is: the time per step and the bound at its step cap."""
+    from warpmpm.experiment.run import Progress
+
+    lines = []
+    p = Progress(lambda text, end="\n": lines.append(text), live=False)
+    p.FIRST_LINE_S = 0.0
+    p.step("estimate", 0, 1.0, 1000)
+    p.step("estimate", 10, 0.5, 1000)
+    assert len(lines) == 1 and "estimate: step 10" in lines[0] and "at most 990 steps more, up to" in lines[0]
+    p.step("estimate", 11, 0.5, 1000)  # the next line waits EVERY_S
+    assert len(lines) == 1

@@ -112,7 +112,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
     recorder.log_slices(slices, idx, targets, prep.case, prep.centre_mm)
     def on_step(estimator, step, rel, rms):
         recorder.on_step(estimator, step, rel, rms)
-        progress.step("estimate", step, rms)
+        progress.step("estimate", step, rms, cfg.max_steps)
 
     est = SliceDrivenEstimator(model, slices, driven=idx, solver_config=replace(cfg.solver, device=cfg.device),
                                convergence=ConvergenceConfig(max_steps=cfg.max_steps, wait_settled=cfg.wait_settled),
@@ -171,18 +171,38 @@ def check_device(device: str | None) -> None:
 
 class Progress:
     """Where a run says how far it has got: stage lines to ``write`` (None: silent), and a live step line
-    when ``live`` (a terminal)."""
+    when ``live`` (a terminal). Not live (a log), a long stage still says where it is: once its pace is known (after
+    :attr:`FIRST_LINE_S` s), a line with the time per step and the most the stage can still take at its step cap, then
+    one every :attr:`EVERY_S` s."""
+
+    FIRST_LINE_S = 10.0
+    EVERY_S = 60.0
 
     def __init__(self, write, live: bool = False, every: int = 50):
         self.write, self.live, self.every = write, live, every
+        self._t0, self._last, self._what = None, None, None
 
     def say(self, text: str) -> None:
         if self.write is not None:
             self.write(text)
 
-    def step(self, what: str, step: int, rms_mm: float) -> None:
-        if self.write is not None and self.live and step % self.every == 0:
-            self.write(f"\r{what}: step {step}, driven RMS residual {rms_mm:.3f} mm", end="")
+    def step(self, what: str, step: int, rms_mm: float, cap: int | None = None) -> None:
+        if self.write is None:
+            return
+        if self.live:
+            if step % self.every == 0:
+                self.write(f"\r{what}: step {step}, driven RMS residual {rms_mm:.3f} mm", end="")
+            return
+        now = time.perf_counter()
+        if self._what != what:
+            self._what, self._t0, self._last = what, now, None
+            return
+        wait = self.FIRST_LINE_S if self._last is None else self.EVERY_S
+        if now - (self._last or self._t0) >= wait and step > 0:
+            pace = (now - self._t0) / step
+            left = f"; at most {cap - step:,} steps more, up to {pace * (cap - step):.0f} s" if cap else ""
+            self.write(f"{what}: step {step:,}, {pace * 1e3:.0f} ms a step, driven RMS residual {rms_mm:.3f} mm{left}")
+            self._last = now
 
     def done(self, text: str) -> None:
         if self.write is not None:
