@@ -536,6 +536,29 @@ def _beam_on(path: str, n_frames: int) -> list[float]:
     return weights
 
 
+def _remove_dead_tracks(parent: str) -> None:
+    """Remove the working folders (``.track-*``) that killed tracks left in ``parent``: those whose process is gone."""
+    import shutil
+
+    for name in os.listdir(parent):
+        path = os.path.join(parent, name)
+        if not (name.startswith(".track-") and os.path.isdir(path)):
+            continue
+        try:
+            pid = int(open(os.path.join(path, "pid")).read().strip())
+        except (OSError, ValueError):
+            continue  # not ours, or still being created: left alone
+        try:
+            os.kill(pid, 0)
+            continue  # still running
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        print(f"removed {path}: the unfinished work of a track that was killed", file=sys.stderr)
+
+
 def _dicom_writer(case, a, work, frames=()):
     """The planning series the DICOM outputs refer to: the user's (a DICOM --image), else the planning image written as one."""
     from .dicom_rt import FrameDicomWriter, read_series_reference, write_series
@@ -621,7 +644,10 @@ def cmd_track(a) -> int:
     import shutil
     import tempfile
 
+    _remove_dead_tracks(parent)
     work = tempfile.mkdtemp(prefix=".track-", dir=parent)
+    with open(os.path.join(work, "pid"), "w") as fh:  # whose it is: a later track removes it if this one was killed
+        fh.write(str(os.getpid()))
     try:
         dicom = _dicom_writer(case, a, work, frames) if a.dicom else None
         rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder, dicom=dicom, dose=dose,
@@ -633,6 +659,7 @@ def cmd_track(a) -> int:
             write_rtdose(os.path.join(work, "dicom", "RD_accumulated.dcm"), dicom.ref,
                          sitk_array(dose.accumulated_image()), plan_uid=plan,
                          description="warpmpm accumulated dose (organs only)")
+        os.remove(os.path.join(work, "pid"))
         if os.path.isdir(out):
             shutil.rmtree(out)
         os.replace(work, out)
