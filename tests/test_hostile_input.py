@@ -582,12 +582,12 @@ def test_hostile_script_clinic_file_cases_are_clear_errors(tmp_path):
     exe = os.path.join(os.path.dirname(sys.executable), "warpmpm")
     outcomes = {}
     for name, argv, expected in h.cases(d):
-        if not name.startswith(("track:", "cine-info:")):
+        if not name.startswith(("track:", "cine-info:", "make-cine:", "make-truth:")):
             continue
         before = set(os.listdir(d))
         proc = subprocess.run([exe] + argv[1:], capture_output=True, text=True, cwd=d, timeout=300)
         outcomes[name] = h.classify(proc, expected, before, d)
-    assert len(outcomes) >= 14
+    assert len(outcomes) >= 20
     assert all(v == "clear error" for v in outcomes.values()), outcomes
 
 

@@ -701,17 +701,37 @@ def cmd_make_cine(a) -> int:
         raise InputError(f"--out {a.out} already holds files; name a new or empty folder (two series are never mixed)")
     if a.image is not None and a.labels is None:
         raise InputError("--image needs --labels (without both, the built-in phantom is used)")
-    if a.labels is None:  # the phantom: its planning image and labels go beside the series, for `warpmpm track`
-        from .images import write_case
+    import math
+    import shutil
+    import tempfile
 
-        os.makedirs(os.path.join(a.out, "planning"), exist_ok=True)
-        paths = os.path.join(a.out, "planning", "labels.nii.gz"), os.path.join(a.out, "planning", "image.nii.gz")
-        write_case(make_phantom(resolution=a.phantom_resolution), *paths)
-        case = _planning_case(paths[1], paths[0], "amos")  # as the tracker will read it (float32 geometry)
-    else:
-        case = _planning_case(a.image, a.labels, a.preset)
-    make_cine(case, a.out, planes=planes, frames=a.frames, fps=fps, thickness_mm=a.thickness_mm, pixel_mm=a.pixel_mm, seed=a.seed,
-              particle_step=a.particle_step, fmt=a.format, truth_fields=fields, progress=lambda t: print(t, flush=True))
+    if not (math.isfinite(a.phantom_resolution) and 0.25 <= a.phantom_resolution <= 16):
+        raise InputError(f"--phantom-resolution must be a finite number in 0.25..16 (mm), got {a.phantom_resolution}")
+    if not 1 <= a.particle_step <= 16:
+        raise InputError(f"--particle-step must be a whole number in 1..16, got {a.particle_step}")
+    out = os.path.abspath(a.out)
+    if not os.path.isdir(os.path.dirname(out)):
+        raise InputError(f"the folder {os.path.dirname(out)} for --out does not exist")
+    # written beside --out and moved into place at the end: a failed or interrupted series leaves nothing behind
+    work = tempfile.mkdtemp(prefix=".make-cine-", dir=os.path.dirname(out))
+    try:
+        if a.labels is None:  # the phantom: its planning image and labels go beside the series, for `warpmpm track`
+            from .images import write_case
+
+            os.makedirs(os.path.join(work, "planning"))
+            paths = os.path.join(work, "planning", "labels.nii.gz"), os.path.join(work, "planning", "image.nii.gz")
+            write_case(make_phantom(resolution=a.phantom_resolution), *paths)
+            case = _planning_case(paths[1], paths[0], "amos")  # as the tracker will read it (float32 geometry)
+        else:
+            case = _planning_case(a.image, a.labels, a.preset)
+        make_cine(case, work, planes=planes, frames=a.frames, fps=fps, thickness_mm=a.thickness_mm, pixel_mm=a.pixel_mm,
+                  seed=a.seed, particle_step=a.particle_step, fmt=a.format, truth_fields=fields,
+                  progress=lambda t: print(t, flush=True))
+        if os.path.isdir(out):
+            os.rmdir(out)  # empty (checked above)
+        os.replace(work, out)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     print(f"wrote {a.out}/cine and {a.out}/truth")
     return 0
 
@@ -730,6 +750,14 @@ def cmd_make_truth(a) -> int:
     if a.labels is None:
         if a.image is not None:
             raise InputError("--image needs --labels (without both, the built-in phantom is used)")
+        import math
+
+        from .experiment.config import MAX_SEED
+
+        if not (0 <= a.phantom_seed <= MAX_SEED):
+            raise InputError(f"--phantom-seed must be a whole number in 0..{MAX_SEED}, got {a.phantom_seed}")
+        if not (math.isfinite(a.phantom_resolution) and 0.25 <= a.phantom_resolution <= 16):
+            raise InputError(f"--phantom-resolution must be a finite number in 0.25..16 (mm), got {a.phantom_resolution}")
         case, preset = make_phantom(seed=a.phantom_seed, resolution=a.phantom_resolution), "amos"
     else:
         case, preset = _planning_case(a.image, a.labels, a.preset), a.preset
