@@ -1,6 +1,6 @@
 """How far below ``propagate`` can the cine tracker's physics get, given a perfect slice registration? (issue 15)
 
-The tracker ties ``propagate`` on the MR cine series (README). This asks whether that is the registration's fault
+The tracker ties ``propagate`` on the MR cine series (docs/results.md). This asks whether that is the registration's fault
 or the information's: for each frame of a synthetic series (``benchmarks/track_series.py`` makes them), from the
 planning state and with the **true** in-plane motion of every particle the frame's plane holds (what a perfect 2D
 deformable registration would measure; the through-plane part is not given, as no 2D frame gives it):

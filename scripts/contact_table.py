@@ -1,4 +1,4 @@
-"""README's contact-protocol table: the mid-pancreas axial slice, psdl, estimate with affine and with GT slice
+"""The contact-protocol table of docs/results.md: the mid-pancreas axial slice, psdl, estimate with affine and with GT slice
 targets beside the baselines, on phantom seeds and on the MR sample.
 
     python scripts/contact_table.py [--phantom-seeds 0,1,2] [--mr-seeds 1,2,3] [--json runs/contact.json]

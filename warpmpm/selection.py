@@ -33,7 +33,7 @@ __all__ = ["SELECTOR_DIR", "DEFAULT_SELECTOR", "DEFAULT_PLANE_SELECTOR", "FEATUR
            "percentile_rank", "split_by_case", "split_by_row", "ConditionSelector", "tune_and_train",
            "within_group_scores", "regret", "baseline_regret"]
 
-#: The selectors behind README's figures, shipped with the package: the axial slice and combination
+#: The selectors behind the figures of docs/results.md, shipped with the package: the axial slice and combination
 #: model (error target) and the sagittal/coronal Dice-rank model (their training reports lie beside them).
 SELECTOR_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "selectors")
 DEFAULT_SELECTOR = os.path.join(SELECTOR_DIR, "selection_error.json")

@@ -93,7 +93,7 @@ class TrackerConfig:
     starts from the last frame's estimate and the body lags the slice until it has settled."""
     registration: str = "gauss-newton"
     """The slice registration's backend (:func:`warpmpm.registration.register_slices`): ``"gauss-newton"``
-    (default: measured on five MR cine series, 3-3.6x faster than ITK's and as accurate or better; README) or
+    (default: measured on five MR cine series, 3-3.6x faster than ITK's and as accurate or better; docs/results.md) or
     ``"itk"``."""
     registration_linear_prior: float = 10.0
     """With the Gauss-Newton backend, how strongly a frame's registration keeps the linear part (scale, shear,
@@ -106,7 +106,7 @@ class TrackerConfig:
     plane (:func:`warpmpm.rendering.render_plane`), so the registration measures what the estimate still misses
     and its errors do not add up frame after frame; through-plane motion another plane has measured is in the
     reference. ``"previous-frame"``: the plane's last frame (the first: the planning image), the motion since then
-    (the tracker before the eighth session). Measured on five MR cine series (README): 9.6 % lower pancreas
+    (the tracker before the eighth session). Measured on five MR cine series (docs/results.md): 9.6 % lower pancreas
     error on the mean, lower on each series, for ~20 ms a frame of rendering."""
     reach_mm: float = 15.0
     """How far (mm) a particle may start from a plane and still come onto it during the series: those within
