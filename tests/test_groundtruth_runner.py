@@ -144,10 +144,10 @@ def test_run_case_bad_input_exit_2_no_json(tmp_path, capsys, args, msg):
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
-def test_run_case_script_runs_as_a_program(tmp_path):
-    """The example script itself (as a user runs it), on a tiny phantom, without volume registration."""
+def test_seed_experiment_script_runs_as_a_program(tmp_path):
+    """The seed's experiment script itself (as a user runs it), on a tiny phantom, without volume registration."""
     out = tmp_path / "r.json"
-    proc = subprocess.run([sys.executable, os.path.join(ROOT, "examples", "run_case.py"), "--phantom-resolution", "3",
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "examples", "seed_experiment.py"), "--phantom-resolution", "3",
                            "--organs", "p", "--device", "cpu", "--no-volume-registration", "--json", str(out)],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr

@@ -1,6 +1,6 @@
 """The ``warpmpm`` command: ``run | sweep | multi | train | view | track | make-cine | evaluate-track``.
 
-    warpmpm run                                  # a whole case on the built-in phantom (= examples/run_case.py)
+    warpmpm run                                  # the seed's experiment on the built-in phantom (= examples/seed_experiment.py)
     warpmpm run --labels L.nii.gz --image I.nii.gz --preset totalseg_mr --json out.json --rrd out.rrd
     warpmpm sweep --phantom-seeds 0,1 --organs all --out runs/sweep.csv --workers 2
     warpmpm multi --phantom-seeds 0,1 --out runs/multi.csv
@@ -871,7 +871,7 @@ def main(argv=None) -> int:
 
 
 def run_main(argv=None) -> int:
-    """``warpmpm run`` with ``argv`` (what ``examples/run_case.py`` calls)."""
+    """``warpmpm run`` with ``argv`` (what ``examples/seed_experiment.py`` calls)."""
     return main(["run", *(sys.argv[1:] if argv is None else argv)])
 
 
