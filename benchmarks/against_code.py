@@ -34,9 +34,8 @@ import tempfile
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-import raw  # noqa: E402
+import raw
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -19,24 +19,22 @@ boosted modes (mass norm), and its pace without the correction. Raw numbers: ``b
 """
 
 import argparse
-import os
 import sys
 import warnings
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402
-import warp as wp  # noqa: E402
+import raw
+import warp as wp
 
-from warpmpm import InPlaneAffine, build_model, make_phantom  # noqa: E402
-from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
-from warpmpm.quasistatic import apply_stiffness, grid_view  # noqa: E402
-from warpmpm.rigid_modes import RigidModeAccelerator, _basis, _stencils  # noqa: E402
-from warpmpm.slices import DrivingSlice  # noqa: E402
-from warpmpm.solver import SolverConfig  # noqa: E402
-from warpmpm.targets import affine_targets  # noqa: E402
+from warpmpm import InPlaneAffine, build_model, make_phantom
+from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
+from warpmpm.quasistatic import apply_stiffness, grid_view
+from warpmpm.rigid_modes import RigidModeAccelerator, _basis, _stencils
+from warpmpm.slices import DrivingSlice
+from warpmpm.solver import SolverConfig
+from warpmpm.targets import affine_targets
 
 
 def coarse_basis(c: dict, dx: float, grid_shape, affine: bool) -> np.ndarray:

@@ -10,24 +10,21 @@ damping removes the swing, and a larger time step reaches the plateau in fewer s
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 import warnings
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
+import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
 
-import warp as wp  # noqa: E402
+import warp as wp
 
-from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
-from warpmpm.slices import InPlaneAffine  # noqa: E402
-from warpmpm.targets import affine_targets  # noqa: E402
-from warpmpm.groundtruth import paper_affine, paper_ground_truth  # noqa: E402
-from warpmpm.experiment import CaseConfig, prepare_case  # noqa: E402
-from warpmpm.solver import SolverConfig  # noqa: E402
+from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
+from warpmpm.slices import InPlaneAffine
+from warpmpm.targets import affine_targets
+from warpmpm.groundtruth import paper_affine, paper_ground_truth
+from warpmpm.experiment import CaseConfig, prepare_case
+from warpmpm.solver import SolverConfig
 
 SETTINGS = [(0.3, 1.0), (0.3, 2.0), (0.3, 4.0), (0.3, 8.0), (0.5, 4.0)]  # (CFL, damping factor)
 

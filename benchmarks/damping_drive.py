@@ -11,22 +11,19 @@ stopping rule, and in the settled mode (``wait_settled``: adaptive damping, PD d
 """
 
 import argparse
-import os
-import sys
 import warnings
 from dataclasses import replace
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402
-import warp as wp  # noqa: E402
+import raw
+import warp as wp
 
-import warpmpm.experiment.run as run  # noqa: E402
-from warpmpm.driving import DriveConfig  # noqa: E402
-from warpmpm.experiment.case import prepare_case  # noqa: E402
-from warpmpm.experiment.config import CaseConfig  # noqa: E402
-from warpmpm.experiment.truth import make_ground_truth  # noqa: E402
-from warpmpm.solver import SolverConfig  # noqa: E402
+import warpmpm.experiment.run as run
+from warpmpm.driving import DriveConfig
+from warpmpm.experiment.case import prepare_case
+from warpmpm.experiment.config import CaseConfig
+from warpmpm.experiment.truth import make_ground_truth
+from warpmpm.solver import SolverConfig
 
 #: (name, damping rule, integral ratio, settled mode); ki None: the drive's default for the stopping rule
 VARIANTS = [("fixed, PID (default)", "auto", None, False), ("adaptive, PID", "adaptive", 0.02, False),

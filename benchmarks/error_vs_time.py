@@ -19,23 +19,21 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import sys
 import time
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
+import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
 
-import warp as wp  # noqa: E402
+import warp as wp
 
-from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
-from warpmpm.slices import InPlaneAffine, in_plane_axes  # noqa: E402
-from warpmpm.targets import affine_targets  # noqa: E402
-from warpmpm.groundtruth import paper_affine, paper_ground_truth  # noqa: E402
-from warpmpm.metrics import evaluate  # noqa: E402
-from warpmpm.experiment import CaseConfig, prepare_case  # noqa: E402
-from warpmpm.solver import SolverConfig  # noqa: E402
+from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
+from warpmpm.slices import InPlaneAffine, in_plane_axes
+from warpmpm.targets import affine_targets
+from warpmpm.groundtruth import paper_affine, paper_ground_truth
+from warpmpm.metrics import evaluate
+from warpmpm.experiment import CaseConfig, prepare_case
+from warpmpm.solver import SolverConfig
 
 
 # The settings before issue 9's tuning (CFL 0.3, damping factor 1, the paper's TH_D 4): kept as a

@@ -23,24 +23,21 @@ and 8 particles per cell, with the error by distance from the slice (in-plane an
 
 import argparse
 import math
-import os
-import sys
 import time
 import warnings
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
-import warp as wp  # noqa: E402
+import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
+import warp as wp
 
-from warpmpm.driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator  # noqa: E402
-from warpmpm.fem import fem_displacement_mm  # noqa: E402
-from warpmpm.scenes import block_model, inclusion_model, merge_models  # noqa: E402
-from warpmpm.slices import DrivingSlice, InPlaneAffine  # noqa: E402
-from warpmpm.solver import SolverConfig  # noqa: E402
-from warpmpm.targets import affine_targets  # noqa: E402
+from warpmpm.driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator
+from warpmpm.fem import fem_displacement_mm
+from warpmpm.scenes import block_model, inclusion_model, merge_models
+from warpmpm.slices import DrivingSlice, InPlaneAffine
+from warpmpm.solver import SolverConfig
+from warpmpm.targets import affine_targets
 
 A = math.radians(3.0)
 LOADS = {"scale 1.05": InPlaneAffine(np.eye(2) * 1.05),

@@ -14,24 +14,21 @@ asynchronous: the table then shows launch (enqueue) times and the read-backs abs
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 import time
 from collections import defaultdict
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
+import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
 
-import warp as wp  # noqa: E402
+import warp as wp
 
-from warpmpm.driving import SliceDrivenEstimator  # noqa: E402
-from warpmpm.slices import InPlaneAffine  # noqa: E402
-from warpmpm.targets import affine_targets  # noqa: E402
-from warpmpm.groundtruth import paper_affine  # noqa: E402
-from warpmpm.experiment import CaseConfig, prepare_case  # noqa: E402
+from warpmpm.driving import SliceDrivenEstimator
+from warpmpm.slices import InPlaneAffine
+from warpmpm.targets import affine_targets
+from warpmpm.groundtruth import paper_affine
+from warpmpm.experiment import CaseConfig, prepare_case
 
 
 @wp.kernel

@@ -27,14 +27,13 @@ import time
 import numpy as np
 import SimpleITK as sitk
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402
-from rendering_speed import moved_positions  # noqa: E402
-from warpmpm.model import build_model  # noqa: E402
-from warpmpm.phantom import make_phantom  # noqa: E402
-from warpmpm.rendering import particle_label_map  # noqa: E402
-from warpmpm.tracker import _write_image, displacement_field  # noqa: E402
+import raw
+from rendering_speed import moved_positions
+from warpmpm.model import build_model
+from warpmpm.phantom import make_phantom
+from warpmpm.rendering import particle_label_map
+from warpmpm.tracker import _write_image, displacement_field
 
 
 def previous_field(model, positions_mm, case, sigma_mm: float = 4.0) -> sitk.Image:

@@ -11,19 +11,17 @@ cine-frame pixel sizes.
 """
 
 import os
-import sys
 import time
 from contextlib import nullcontext
 
 import numpy as np
 import SimpleITK as sitk
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402
-from warpmpm.phantom import make_phantom  # noqa: E402
-from warpmpm.registration import one_itk_thread, register_slices, resample_slice_affine, slice_mask  # noqa: E402
-from warpmpm.slices import extract_slice  # noqa: E402
+import raw
+from warpmpm.phantom import make_phantom
+from warpmpm.registration import one_itk_thread, register_slices, resample_slice_affine, slice_mask
+from warpmpm.slices import extract_slice
 
 
 def main():

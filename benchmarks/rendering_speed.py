@@ -22,7 +22,6 @@ Raw numbers: ``benchmarks/results/rendering_speed.json``.
 """
 
 import argparse
-import os
 import statistics
 import sys
 import time
@@ -31,12 +30,11 @@ from contextlib import nullcontext
 import numpy as np
 import SimpleITK as sitk
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402
-from warpmpm import rendering  # noqa: E402
-from warpmpm.model import build_model  # noqa: E402
-from warpmpm.phantom import make_phantom  # noqa: E402
+import raw
+from warpmpm import rendering
+from warpmpm.model import build_model
+from warpmpm.phantom import make_phantom
 
 
 class Previous:

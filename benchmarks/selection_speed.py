@@ -15,21 +15,19 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
+import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
 
-import warp as wp  # noqa: E402
+import warp as wp
 
-from dataclasses import replace  # noqa: E402
+from dataclasses import replace
 
-from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared  # noqa: E402
-from warpmpm.selection import DEFAULT_PLANE_SELECTOR, DEFAULT_SELECTOR, ConditionSelector  # noqa: E402
+from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared
+from warpmpm.selection import DEFAULT_PLANE_SELECTOR, DEFAULT_SELECTOR, ConditionSelector
 
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
 

@@ -17,15 +17,14 @@ import time
 import warnings
 from dataclasses import replace
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402
-import warp as wp  # noqa: E402
+import raw
+import warp as wp
 
-from warpmpm.experiment.case import prepare_case  # noqa: E402
-from warpmpm.experiment.config import CaseConfig  # noqa: E402
-from warpmpm.experiment.run import run_prepared  # noqa: E402
-from warpmpm.experiment.truth import make_ground_truth  # noqa: E402
+from warpmpm.experiment.case import prepare_case
+from warpmpm.experiment.config import CaseConfig
+from warpmpm.experiment.run import run_prepared
+from warpmpm.experiment.truth import make_ground_truth
 
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
 SAMPLES = {"mr": ("totalseg_mr", "totalseg_mr"), "ct": ("totalseg_ct", "totalseg_ct")}

@@ -15,24 +15,22 @@ its ratio), the 99th-percentile motion of the last 500 steps (``-`` for a run of
 """
 
 import argparse
-import os
 import sys
 import time
 import warnings
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402
-import warp as wp  # noqa: E402
+import raw
+import warp as wp
 
-from warpmpm import InPlaneAffine, build_model, make_phantom  # noqa: E402
-from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator  # noqa: E402
-from warpmpm.errors import InputError  # noqa: E402
-from warpmpm.slices import DrivingSlice  # noqa: E402
-from warpmpm.solver import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASIS, SolverConfig  # noqa: E402
-from warpmpm.targets import affine_targets  # noqa: E402
+from warpmpm import InPlaneAffine, build_model, make_phantom
+from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
+from warpmpm.errors import InputError
+from warpmpm.slices import DrivingSlice
+from warpmpm.solver import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASIS, SolverConfig
+from warpmpm.targets import affine_targets
 
 SCENES = {"res3": ("phantom resolution 3 mm", dict(resolution=3.0), 1),
           "default": ("default phantom (particle step 2)", {}, 2)}

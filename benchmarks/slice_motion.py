@@ -14,17 +14,15 @@ writes every run to ``benchmarks/results/slice_motion_<protocol>.json``.
 
 import argparse
 import os
-import sys
 import warnings
 from dataclasses import replace
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
-from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared  # noqa: E402
-from warpmpm.experiment.tasks import run_tasks  # noqa: E402
+import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
+from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared
+from warpmpm.experiment.tasks import run_tasks
 
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
 KINDS = [("gt", "pinned"), ("gt-inplane", "inplane"), ("gt-inplane", "pinned"), ("affine", "inplane"), ("affine", "pinned"),

@@ -19,19 +19,17 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import raw  # noqa: E402  (benchmarks/raw.py: raw numbers beside the README tables)
+import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
 
-import warp as wp  # noqa: E402
+import warp as wp
 
-from warpmpm.scenes import block_model, merge_models  # noqa: E402
-from warpmpm.solver import MPMModel, MPMSolver, SolverConfig  # noqa: E402
+from warpmpm.scenes import block_model, merge_models
+from warpmpm.solver import MPMModel, MPMSolver, SolverConfig
 
 
 def scene(n_target: int):

@@ -20,13 +20,11 @@ Research software, not a medical device.
 import argparse
 import csv
 import os
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from warpmpm.cli import main as warpmpm  # noqa: E402
+from warpmpm.cli import main as warpmpm
 
 ROI_NAMES = {"pancreas": "Pancreas", "stomach": "Stomach", "duodenum": "Duodenum", "left_kidney": "Kidney_L"}
 

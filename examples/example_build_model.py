@@ -8,14 +8,11 @@ axial slices through the pancreas: the features the selection model reads.
 """
 
 import argparse
-import os
-import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from warpmpm import build_model, load_case, make_phantom  # noqa: E402
+from warpmpm import build_model, load_case, make_phantom
 
 
 class Example:

@@ -9,20 +9,17 @@ applied to them (what the paper's ground truth does to every slice), before and 
 """
 
 import argparse
-import os
-import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import numpy as np  # noqa: E402
-import warp as wp  # noqa: E402
+import numpy as np
+import warp as wp
 
-from warpmpm import InPlaneAffine, build_model, make_phantom  # noqa: E402
-from warpmpm.driving import SliceDrivenEstimator  # noqa: E402
-from warpmpm.groundtruth import paper_affine  # noqa: E402
-from warpmpm.slices import DrivingSlice, in_plane_axes  # noqa: E402
-from warpmpm.solver import SolverConfig  # noqa: E402
-from warpmpm.targets import affine_targets  # noqa: E402
+from warpmpm import InPlaneAffine, build_model, make_phantom
+from warpmpm.driving import SliceDrivenEstimator
+from warpmpm.groundtruth import paper_affine
+from warpmpm.slices import DrivingSlice, in_plane_axes
+from warpmpm.solver import SolverConfig
+from warpmpm.targets import affine_targets
 
 
 class Example:

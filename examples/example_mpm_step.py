@@ -11,16 +11,13 @@ moving through the shared grid alone (contact comes free).
 """
 
 import argparse
-import os
-import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import numpy as np  # noqa: E402
-import warp as wp  # noqa: E402
+import numpy as np
+import warp as wp
 
-from warpmpm.scenes import block_model, merge_models  # noqa: E402
-from warpmpm.solver import MPMModel, MPMSolver, SolverConfig  # noqa: E402
+from warpmpm.scenes import block_model, merge_models
+from warpmpm.solver import MPMModel, MPMSolver, SolverConfig
 
 
 class Example:

@@ -10,16 +10,13 @@ organs' pixels in mm, and the time.
 
 import argparse
 import math
-import os
-import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from warpmpm import InPlaneAffine, make_phantom  # noqa: E402
-from warpmpm.registration import register_slices, resample_slice_affine, slice_mask  # noqa: E402
-from warpmpm.slices import extract_slice  # noqa: E402
+from warpmpm import InPlaneAffine, make_phantom
+from warpmpm.registration import register_slices, resample_slice_affine, slice_mask
+from warpmpm.slices import extract_slice
 
 
 class Example:

@@ -5,12 +5,10 @@
     python examples/evaluate_track.py --track runs/track --truth runs/cine/truth --json eval.json
 """
 
-import os
 import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from warpmpm.cli import main  # noqa: E402
+from warpmpm.cli import main
 
 if __name__ == "__main__":
     raise SystemExit(main(["make-cine", *sys.argv[1:]]))

@@ -23,9 +23,8 @@ import shutil
 import sys
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from warpmpm.cli import main as warpmpm  # noqa: E402
+from warpmpm.cli import main as warpmpm
 
 
 def stage(name, argv, log):

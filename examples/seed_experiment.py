@@ -7,12 +7,9 @@
 See ``python examples/seed_experiment.py --help`` for every option. The main job is ``examples/run_case.py``.
 """
 
-import os
-import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from warpmpm.cli import run_main  # noqa: E402
+from warpmpm.cli import run_main
 
 if __name__ == "__main__":
     raise SystemExit(run_main())

@@ -7,13 +7,11 @@ targets beside the baselines, on phantom seeds and on the MR sample.
 import argparse
 import json
 import os
-import sys
 import warnings
 from dataclasses import replace
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared  # noqa: E402
+from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared
 
 DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
 

@@ -24,7 +24,6 @@ TINY = ["--phantom-resolution", "3", "--device", "cpu", "--quiet", "--no-volume-
 
 def make_files(d):
     """Broken copies of the tiny phantom: truncated, NaN voxels, far duodenum, junk, empty."""
-    sys.path.insert(0, ROOT)
     from dataclasses import replace
 
     import numpy as np

@@ -8,15 +8,12 @@ baselines initial, propagate and volume_registration.
 
 import argparse
 import csv
-import os
-import sys
 from dataclasses import replace
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared  # noqa: E402
+from warpmpm.experiment import CaseConfig, make_ground_truth, prepare_case, run_prepared
 
 
 def main(argv=None):

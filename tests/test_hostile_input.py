@@ -260,7 +260,7 @@ def test_solver_settings_are_checked_when_built():
 def test_itk_warnings_do_not_precede_the_error_line(tmp_path):
     path = tmp_path / "junk.nii"
     path.write_bytes(b"\x00" * 400)
-    proc = subprocess.run([sys.executable, os.path.join(ROOT, "examples", "run_case.py"), "--labels", str(path)],
+    proc = subprocess.run([sys.executable, os.path.join(ROOT, "examples", "seed_experiment.py"), "--labels", str(path)],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and proc.stderr.startswith("error:") and proc.stderr.count("\n") == 1, proc.stderr
 
@@ -529,8 +529,12 @@ def test_make_cine_refuses_an_out_that_is_a_file_or_holds_a_series(tmp_path, cap
 def test_a_raw_numbers_name_that_leaves_the_results_folder_is_refused(tmp_path, monkeypatch):
     """Benchmarks write benchmarks/results/<--raw>.json: a name with a folder in it is refused before the run (the
     option's type) and at the write, and nothing is written."""
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks"))
-    import raw
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("raw", os.path.join(os.path.dirname(os.path.abspath(__file__)), "..",
+                                                                       "benchmarks", "raw.py"))
+    raw = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(raw)
 
     monkeypatch.setattr(raw, "RESULTS", str(tmp_path / "results"))
     for bad in ("../elsewhere", "a/b", "x.json", "", ".hidden"):

@@ -19,6 +19,7 @@ and what was still to be written may be missing, as with a shell's SIGPIPE).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 from dataclasses import replace
@@ -34,6 +35,24 @@ EXIT_TASKS_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_PIPE_CLOS
 # --------------------------------------------------------------------------------------------
 # Shared option groups (parent parsers)
 # --------------------------------------------------------------------------------------------
+
+def _default(config_cls, name):
+    """A config field's default: the one source of every subcommand's default (``--help`` shows it)."""
+    f = config_cls.__dataclass_fields__[name]
+    return f.default_factory() if callable(getattr(f, "default_factory", None)) and f.default_factory is not dataclasses.MISSING else f.default
+
+
+def _experiment_default(name):
+    from .experiment.config import CaseConfig
+
+    return _default(CaseConfig, name)
+
+
+def _tracker_default(name):
+    from .tracker import TrackerConfig
+
+    return _default(TrackerConfig, name)
+
 
 def _case_options() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(add_help=False)
@@ -90,30 +109,32 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
                    "'auto:asc': psdl, that axial slice plus the best sagittal and/or coronal slice; default: mid-pancreas axial")
     p.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (under contact: the scenario number)")
-    p.add_argument("--targets", default="registration-demons", choices=["registration-demons", "registration", "affine", "gt",
-                                                                              "gt-inplane", "registration-affine", "registration-bspline"],
-                   help="slice motion: organ-aware registration of the captured slices refined organ by organ by demons fields "
-                   "(default: what images give), the organ-aware affines alone, an affine fitted to the GT (the paper's protocol), "
-                   "GT 3D positions (upper bound), GT in-plane part (ceiling of 2D registration), one registered affine per slice, "
-                   "or a registered B-spline field")
-    p.add_argument("--registration", default="itk", choices=list(BACKENDS),
+    p.add_argument("--targets", default=_experiment_default("targets"), choices=["affine", "registration-demons", "registration",
+                                                                                   "gt", "gt-inplane", "registration-affine",
+                                                                                   "registration-bspline"],
+                   help="slice motion: an affine fitted to the truth on each slice (the seed's protocol; default %(default)s), "
+                   "organ-aware registration of the captured slices refined organ by organ by demons fields (what images give), "
+                   "the organ-aware affines alone, the truth's 3D positions (upper bound), its in-plane part (the ceiling of 2D "
+                   "registration), one registered affine per slice, or a registered B-spline field")
+    p.add_argument("--registration", default=_experiment_default("registration"), choices=list(BACKENDS),
                    help="the slice registration's optimiser (registration targets): ITK's gradient descent or Gauss-Newton, "
                    "the same correlation metric")
     p.add_argument("--no-plane-check", action="store_true",
                    help="drive every plane's registered motion, unchecked (default: each plane's motion of each organ is checked "
                    "against the captured planes first and dropped, with a warning, when it makes them match worse)")
-    p.add_argument("--registration-passes", type=int, default=1,
+    p.add_argument("--registration-passes", type=int, default=_experiment_default("registration_passes"),
                    help="with several driving planes: register them this many times, each later pass against the planning image "
                    "moved by the last pass's combined motion (kept while the planes match better); default 1")
-    p.add_argument("--drive", default="pinned", choices=["inplane", "pinned"],
+    p.add_argument("--drive", default=_experiment_default("drive"), choices=["inplane", "pinned"],
                    help="inplane: a slice drives only its in-plane components; pinned: the through-plane coordinate too")
     p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
     p.add_argument("--literal-angles", action="store_true", help="read the paper's r, g literally as r/2pi radians")
-    p.add_argument("--max-steps", type=int, default=6000)
+    p.add_argument("--max-steps", type=int, default=_experiment_default("max_steps"), help="steps before the estimate stops "
+                   "(default %(default)s)")
     p.add_argument("--wait-settled", action="store_true",
                    help="the settled mode: run each estimate on until the whole model has settled, not only the driven slice, with "
                    "adaptive (critical) damping and a PD drive (checked against the FEM reference; slower)")
-    p.add_argument("--solver", default="explicit", choices=["explicit", "quasistatic", "auto"],
+    p.add_argument("--solver", default=_experiment_default("solver").method, choices=["explicit", "quasistatic", "auto"],
                    help="how the estimate's equilibrium is found: explicit MPM steps stopped by the paper's rule (default), "
                    "Newton / conjugate-gradient iterations to the settled equilibrium, or auto: those iterations first and "
                    "explicit steps from where they stopped when the frame has not settled after a few (sticky contact only; "
@@ -155,13 +176,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(phantom_resolution=2.0)
     s.add_argument("--organs", default="psdl", help="comma-separated combinations, or 'all'")
     s.add_argument("--orientations", default="axial")
-    s.add_argument("--targets", default="affine", choices=["affine", "gt", "gt-inplane", "registration", "registration-affine",
-                                                           "registration-bspline", "registration-demons"])
-    s.add_argument("--drive", default="pinned", choices=["inplane", "pinned"])
+    s.add_argument("--targets", default=_experiment_default("targets"), choices=["affine", "gt", "gt-inplane", "registration",
+                                                                                  "registration-affine", "registration-bspline",
+                                                                                  "registration-demons"])
+    s.add_argument("--drive", default=_experiment_default("drive"), choices=["inplane", "pinned"])
     s.add_argument("--exclude-driven", action="store_true",
                    help="leave the driven particles out of the metrics (the multi-direction rule; default: only with several slices)")
     s.add_argument("--slice-stride", type=int, default=1)
-    s.add_argument("--max-steps", type=int, default=6000, help="steps per estimate before it is reported not converged")
+    s.add_argument("--max-steps", type=int, default=_experiment_default("max_steps"),
+                   help="steps per estimate before it is reported not converged")
     s.add_argument("--out", default="runs/sweep.csv")
 
     m = sub.add_parser("multi", parents=[case(), device(), tasks(), selector()], help="the paper's multi-direction protocol",
@@ -213,21 +236,22 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--out", required=True, help="output folder (created)")
     k.add_argument("--organs", default="psdl")
     k.add_argument("--particle-step", type=int, default=1)
-    k.add_argument("--max-steps", type=int, default=3000, help="steps per frame before it is reported not converged")
+    k.add_argument("--max-steps", type=int, default=_tracker_default("max_steps"),
+                   help="steps per frame before it is reported not converged (default %(default)s)")
     k.add_argument("--displacement", action="store_true", help="also write each frame's 3D displacement field")
     k.add_argument("--wait-settled", action="store_true",
                    help="the settled mode: run each estimate on until the whole model has settled, not only the driven slice, with "
                    "adaptive (critical) damping and a PD drive (checked against the FEM reference; slower)")
-    k.add_argument("--solver", default="auto", choices=["auto", "explicit", "quasistatic"],
+    k.add_argument("--solver", default=_tracker_default("solver").method, choices=["auto", "explicit", "quasistatic"],
                    help="how each frame's equilibrium is found: auto (default): Newton / conjugate-gradient iterations to the "
                    "settled equilibrium, going on with explicit MPM steps when a frame has not settled after a few; explicit "
                    "MPM steps alone; or the Newton iterations alone")
-    k.add_argument("--registration", default="gauss-newton", choices=list(BACKENDS),
+    k.add_argument("--registration", default=_tracker_default("registration"), choices=list(BACKENDS),
                    help="the slice registration's optimiser: Gauss-Newton (default) or ITK's gradient descent (same correlation metric)")
-    k.add_argument("--linear-prior", type=float, default=10.0,
+    k.add_argument("--linear-prior", type=float, default=_tracker_default("registration_linear_prior"),
                    help="Gauss-Newton registration: how strongly a frame's scale/shear/rotation is kept near the identity (whole "
                    "slice) or the whole slice's (each organ); 0: none")
-    k.add_argument("--reference", default="estimate", choices=["estimate", "previous-frame"],
+    k.add_argument("--reference", default=_tracker_default("reference"), choices=["estimate", "previous-frame"],
                    help="what each frame is registered against: the current estimate rendered on the frame's plane (default; "
                    "registration errors do not add up) or the plane's last frame (the first: the planning image)")
     k.add_argument("--threads", type=int, default=None, help="CPU threads a step or a Newton iteration is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")

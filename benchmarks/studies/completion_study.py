@@ -6,14 +6,12 @@ one load, plane sets); the figures quoted in docs/decisions/2026-12-03-completio
 
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import completion as completion_bench  # noqa: E402
-import fem_truth  # noqa: E402
+import completion as completion_bench
+import fem_truth
 
 
 def main():
