@@ -60,3 +60,20 @@ def test_no_two_modules_import_each_other():
     pairs = [(a, b) for a in mods for b in mods if a < b and b in mods[a] and a in mods[b]
              and not b.startswith(a + ".") and not a.startswith(b + ".")]
     assert not pairs, f"modules importing each other at module level: {pairs}"
+
+
+def test_the_library_never_imports_the_viewer():
+    """viewer/ sits beside the package and only reads; of the package, only the command line imports it, inside the
+    commands that write or open recordings (never at module level)."""
+    for dirpath, _, files in os.walk(ROOT):
+        for f in files:
+            if not f.endswith(".py"):
+                continue
+            path = os.path.join(dirpath, f)
+            tree = ast.parse(open(path).read())
+            top = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
+            names = [a.name for n in top if isinstance(n, ast.Import) for a in n.names] + [
+                n.module or "" for n in top if isinstance(n, ast.ImportFrom)]
+            assert not any(m == "viewer" or m.startswith("viewer.") for m in names), path
+            if os.path.relpath(path, ROOT) != "cli.py":
+                assert "from viewer" not in open(path).read() and "import viewer" not in open(path).read(), path

@@ -51,7 +51,7 @@ def test_track_without_the_truth_and_evaluate_against_it(series, tmp_path, capsy
         assert disp.GetNumberOfComponentsPerPixel() == 3 and disp.GetSize() == planning.GetSize()
     import csv
 
-    from warpmpm.viewer.__main__ import summarize
+    from viewer.__main__ import summarize
 
     rec = summarize(str(tmp_path / "track.rrd"))  # the frames in their planes beside the estimate, timeline frame
     assert rec["/estimate/pancreas"]["rows"] == 3 and "frame" in rec["/estimate/pancreas"]["timelines"]

@@ -9,8 +9,8 @@ import pytest
 
 from warpmpm.errors import SimulationError
 from warpmpm.experiment import CaseConfig, run_case
-from warpmpm.viewer.__main__ import summarize
-from warpmpm.viewer.recording import RerunRecorder
+from viewer.__main__ import summarize
+from viewer.recording import RerunRecorder
 
 
 def test_recording_holds_every_entity(tmp_path, tiny_model):
@@ -55,7 +55,7 @@ def test_summary_cli(tmp_path):
     rec.log("a", rr.Points3D(np.zeros((5, 3))), static=True)
     rec.flush()
     rec.disconnect()
-    proc = subprocess.run([sys.executable, "-m", "warpmpm.viewer", "--summary", str(path)], capture_output=True, text=True, timeout=120,
+    proc = subprocess.run([sys.executable, "-m", "viewer", "--summary", str(path)], capture_output=True, text=True, timeout=120,
                           cwd=str(__import__("pathlib").Path(__file__).parents[1]))
     assert proc.returncode == 0 and "/a: 1 rows [static], points per row 5..5" in proc.stdout
 
@@ -76,7 +76,7 @@ def test_recording_opens_whole_in_the_viewer(tmp_path):
         import pytest
 
         pytest.skip("no display and no Xvfb: the screenshot part needs one (Debian: xvfb, mesa-vulkan-drivers)")
-    from warpmpm.viewer.__main__ import screenshot
+    from viewer.__main__ import screenshot
 
     png = tmp_path / "shot.png"
     screenshot(str(path), str(png), size=(800, 500))
@@ -102,6 +102,6 @@ def test_junk_recording_is_a_clear_error(tmp_path):
     for name, data in (("junk.rrd", b"not a recording at all"), ("empty.rrd", b"")):
         path = tmp_path / name
         path.write_bytes(data)
-        proc = subprocess.run([sys.executable, "-m", "warpmpm.viewer", "--summary", str(path)], capture_output=True, text=True,
+        proc = subprocess.run([sys.executable, "-m", "viewer", "--summary", str(path)], capture_output=True, text=True,
                               timeout=120, cwd=str(__import__("pathlib").Path(__file__).parents[1]))
         assert proc.returncode == 2 and proc.stderr.startswith("error:") and "Traceback" not in proc.stderr, proc.stderr

@@ -7,7 +7,7 @@ model (:mod:`warpmpm.model`) -> solver (:mod:`warpmpm.kernels`, :mod:`warpmpm.so
 solve of the whole abdomen in :mod:`warpmpm.solvers`, the anatomy it and the truths read in :mod:`warpmpm.anatomy`.
 Beside it: ground truth (:mod:`warpmpm.groundtruth`), metrics (:mod:`warpmpm.metrics`), condition
 selection (:mod:`warpmpm.selection`). On top: the experiment layer (:mod:`warpmpm.experiment`) and
-the CLI (:mod:`warpmpm.cli`). The viewer (:mod:`warpmpm.viewer`) only reads, through the
+the CLI (:mod:`warpmpm.cli`). The viewer (:mod:`viewer`, beside the package) only reads, through the
 :class:`warpmpm.recorder.Recorder` interface.
 """
 

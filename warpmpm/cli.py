@@ -389,7 +389,7 @@ def cmd_run(a) -> int:
         cfg = replace(cfg, organs=organs, slices=slices)
     recorder = None
     if a.rrd:
-        from .viewer.recording import RerunRecorder
+        from viewer.recording import RerunRecorder
 
         recorder = RerunRecorder(a.rrd, every=cfg.rrd_every)
     from .experiment.run import Progress
@@ -486,7 +486,7 @@ def cmd_train(a) -> int:
 
 
 def cmd_view(a) -> int:
-    from .viewer.__main__ import main as view_main
+    from viewer.__main__ import main as view_main
 
     argv = [a.rrd] + (["--summary"] if a.summary else []) + (["--screenshot", a.screenshot] if a.screenshot else [])
     return view_main(argv)
@@ -660,7 +660,7 @@ def cmd_track(a) -> int:
     recorder = None
     if a.rrd:
         from .experiment.io import check_output_path
-        from .viewer.recording import TrackRecorder
+        from viewer.recording import TrackRecorder
 
         recorder = TrackRecorder(check_output_path(a.rrd, "--rrd"), tracker.model)
     # written into a folder beside --out and moved into place at the end: an interrupted or failed track leaves no

@@ -1,7 +1,7 @@
 """What a run reports while it runs: the :class:`Recorder` interface and its do-nothing default.
 
 The experiment layer calls a recorder at fixed points of a run; a viewer implements it (the Rerun
-recorder is :class:`warpmpm.viewer.recording.RerunRecorder`). The library never imports a viewer:
+recorder is :class:`viewer.recording.RerunRecorder`). The library never imports a viewer:
 the caller hands one in, so the package has no cycle through it and runs without it.
 
 Order of calls in one run: :meth:`~Recorder.begin`, :meth:`~Recorder.log_slices`,

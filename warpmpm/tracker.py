@@ -292,7 +292,7 @@ class Tracker:
 
     def run(self, out_dir: str, progress=None, recorder=None, dicom=None, dose=None, dose_weights=None) -> list[dict]:
         """Track every frame, writing ``out_dir`` (module docstring); returns the CSV rows. ``recorder``
-        (e.g. :class:`warpmpm.viewer.recording.TrackRecorder`) gets ``on_frame(n, frame, positions_mm)`` and
+        (e.g. :class:`viewer.recording.TrackRecorder`) gets ``on_frame(n, frame, positions_mm)`` and
         is closed here (``ok=False`` when tracking fails). ``dicom`` (a :class:`warpmpm.dicom_rt.FrameDicomWriter`)
         writes each frame's structure set and registration under ``out_dir/dicom``. ``dose`` (a
         :class:`warpmpm.dose.DoseAccumulator`) takes each frame's field, weighted by ``dose_weights[n]`` (default 1),

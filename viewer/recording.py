@@ -143,7 +143,7 @@ class RerunRecorder:
             self.rec.log(f"{prefix}/{organ}", rr.Points3D(positions[sel], colors=c, radii=radius), static=static)
 
     def log_slices(self, slices, driven: np.ndarray, targets_mm: np.ndarray, case=None, centre_mm=None) -> None:
-        from ..slices import driven_indices, extract_slice, in_plane_axes
+        from warpmpm.slices import driven_indices, extract_slice, in_plane_axes
 
         pos = self.model.positions_mm
         self.rec.send_blueprint(default_blueprint([f"{s.orientation}_{s.index}" for s in slices], pos.mean(0),

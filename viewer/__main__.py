@@ -1,6 +1,6 @@
-"""``python -m warpmpm.viewer RUN.rrd`` opens a recording in the Rerun viewer;
-``python -m warpmpm.viewer --summary RUN.rrd`` prints its entities, timelines and counts without a display;
-``python -m warpmpm.viewer --screenshot OUT.png RUN.rrd`` saves a picture of the viewer showing the recording
+"""``python -m viewer RUN.rrd`` opens a recording in the Rerun viewer;
+``python -m viewer --summary RUN.rrd`` prints its entities, timelines and counts without a display;
+``python -m viewer --screenshot OUT.png RUN.rrd`` saves a picture of the viewer showing the recording
 (on a headless machine it starts a virtual screen with ``Xvfb`` and software Vulkan, e.g. Debian's
 ``xvfb`` and ``mesa-vulkan-drivers``)."""
 
@@ -12,7 +12,7 @@ import shutil
 import subprocess
 import sys
 
-from warpmpm.viewer.recording import rerun_executable
+from viewer.recording import rerun_executable
 
 
 def summarize(path: str) -> dict:
@@ -94,7 +94,7 @@ def screenshot(path: str, out_png: str, size: tuple[int, int] = (1600, 900), tim
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m warpmpm.viewer", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m viewer", description=__doc__)
     p.add_argument("rrd")
     p.add_argument("--summary", action="store_true", help="print entities, timelines and counts (no display needed)")
     p.add_argument("--screenshot", metavar="PNG", help="save a picture of the viewer showing the recording (Xvfb when no display)")

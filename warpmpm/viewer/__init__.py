@@ -1,3 +1,0 @@
-"""Rerun recordings of warpmpm runs: written by :class:`warpmpm.viewer.recording.RerunRecorder` (a
-:class:`warpmpm.recorder.Recorder`), opened with ``python -m warpmpm.viewer RUN.rrd`` (or ``warpmpm view``),
-summarised headless with ``--summary``. The viewer only reads the library; the library never imports it."""
