@@ -68,6 +68,7 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         return out
 
     results: dict[str, Scores] = {}
+    copies: dict[str, np.ndarray] = {}  # the baselines that copy the planes' motion, checked by the estimate's measure
     copy_mm = None
     if "initial" in cfg.baselines:
         results["initial"] = score(model.positions_mm)
@@ -75,10 +76,12 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         copy_mm = propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]),
                             tg.fields.get(slices[0]), tg.organ_fields.get(slices[0]))
         results["propagate"] = score(copy_mm)
+        copies["propagate"] = copy_mm
         if tg.organ_affines.get(slices[0]) or tg.fields.get(slices[0]) or tg.organ_fields.get(slices[0]):
             results["propagate_affine"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm))
     if "propagate" in cfg.baselines and tg.combined_mm is not None:  # every plane's motion, combined, copied to the body
         results["propagate_planes"] = score(tg.combined_mm)
+        copies["propagate_planes"] = tg.combined_mm
     if "rigid" in cfg.baselines:  # each seen organ's observed translation; organs on no plane from their neighbours
         drive_axes = tg.drive.axes if cfg.targets != "gt" else np.tile(np.eye(3), (len(idx), 1, 1))
         for name, pos in baseline_positions(model, idx, targets, drive_axes).items():
@@ -132,6 +135,13 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
     match, unmoved, flag = float("nan"), float("nan"), ""
     if tg.plane_match is not None:  # the estimate's own measure: the captured planes against it rendered on them
         match, unmoved = tg.plane_match(res.positions_mm), tg.plane_match(None)
+        for name, pos in copies.items():  # the copies of the planes' motion, by the same measure
+            m_copy = tg.plane_match(pos)
+            results[name].info["plane_match"] = m_copy
+            if m_copy < unmoved - 0.005:
+                results[name].info["worse_than_no_motion"] = True
+                warnings.warn(f"{name}: the copied motion matches the captured planes worse than no motion (mean correlation "
+                              f"{m_copy:.3f} against {unmoved:.3f} unmoved)", InputWarning, stacklevel=2)
         if not len(idx):
             flag = "no plane's motion passed the plane check: the estimate is no motion"
         elif match < unmoved - 0.005:

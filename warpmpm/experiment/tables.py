@@ -30,7 +30,9 @@ def format_table(out: RunResult) -> str:
         steps = str(j.get("steps", ""))
         wall = f"{j['wall_s']:.2f}" if "wall_s" in j else ""
         label = name
-        if j.get("fallback_to_identity"):
+        if j.get("worse_than_no_motion"):
+            label += " (FLAGGED: matches the planes worse than no motion)"
+        elif j.get("fallback_to_identity"):
             label += " (FAILED: fell back to no motion)"
         elif name == "completion" and not j.get("converged", True):
             label += f" (NOT converged: residual {j['residual']:.1e})"
