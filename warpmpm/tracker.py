@@ -151,6 +151,9 @@ class Tracker:
             if not np.any(np.abs(dist) <= f.thickness_mm / 2):
                 raise InputError(_off_scan_message(f, case.geometry, dist, m.letters))
             candidates.append(np.nonzero(np.abs(f.distance_mm(m.positions_mm)) <= f.thickness_mm / 2 + cfg.reach_mm)[0])
+        if all(abs(f.normal[2]) > np.cos(np.radians(10.0)) for f in frames):
+            warnings.warn("every cine frame is transversal: no plane sees superior-inferior motion, so the estimate's "
+                          "superior-inferior motion is a guess; image a sagittal or coronal plane too", InputWarning, stacklevel=2)
         #: every particle that may lie on a plane during the series (each frame drives those on it now)
         self.driven = np.unique(np.concatenate(candidates))
         reach = [m.positions_mm + s * cfg.margin_mm * np.eye(3)[k] for k in range(3) for s in (-0.5, 0.5)]

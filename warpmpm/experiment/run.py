@@ -54,6 +54,11 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         warnings.warn(f"{driven_share:.0%} of the pancreas particles lie on the driving slices: error and Dice mostly score "
                       "the targets given to them; read error_offslice_mm", InputWarning, stacklevel=2)
 
+    if all(s.orientation == "axial" for s in slices):
+        warnings.warn("only axial planes drive this run: no plane sees superior-inferior motion, so every method's "
+                      "superior-inferior motion is a guess; add a sagittal or coronal plane (--slices axial:K,sagittal:I)",
+                      InputWarning, stacklevel=2)
+
     def offslice_error(pos) -> float:
         return float(np.linalg.norm(pos[offslice] - gt_pos[offslice], axis=1).mean()) if offslice.any() else float("nan")
 
