@@ -1,7 +1,10 @@
 """Study (one-off): variants of the completion solve's config against the copies on finite-element truths (one case,
 one load, plane sets); the figures quoted in docs/decisions/2026-12-03-completion-solve.md.
 
-    python benchmarks/studies/completion_study.py --case mr --loads breathing --planes sagittal+coronal,sagittal --variants default,off10
+    PYTHONPATH=benchmarks python benchmarks/studies/completion_study.py --case mr --loads breathing \
+        --planes sagittal+coronal,sagittal --variants default,off10
+
+(``PYTHONPATH=benchmarks``: it reuses the cases and scoring of ``benchmarks/completion.py`` and ``fem_truth.py``.)
 """
 
 import argparse
