@@ -419,14 +419,10 @@ def read_trackrad(folder: str, centre_mm=None, thickness_mm: float = 5.0) -> lis
     centre = np.asarray(centre_mm, dtype=np.float64)
     if centre.shape != (3,) or not np.all(np.isfinite(centre)):
         raise InputError(f"--trackrad-centre must be three finite numbers (mm), got {centre_mm!r}")
+    from .images import read_volume
+
     path = os.path.join(folder, "images", stacks[0])
-    check_file_integrity(path)
-    try:
-        stack = sitk.ReadImage(path)
-    except RuntimeError as exc:
-        raise InputError(f"cannot read {path}: {str(exc).strip().splitlines()[-1]}") from None
-    if stack.GetDimension() != 3:
-        raise InputError(f"{path} is {stack.GetDimension()}D; a TrackRAD stack is 3D (time, columns, rows)")
+    stack = read_volume(path)  # checked: integrity, 3D, scalar
     arr = sitk.GetArrayFromImage(stack)  # (rows, columns, time)
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{path} holds non-finite pixels")

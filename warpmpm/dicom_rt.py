@@ -160,6 +160,20 @@ def _version() -> str:
         return "0"
 
 
+def _instances(ref: SeriesReference):
+    """A Sequence referring to every image of the series ``ref`` (class and instance UIDs)."""
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    out = Sequence()
+    for uid in ref.sop_instance_uids:
+        item = Dataset()
+        item.ReferencedSOPClassUID = ref.sop_class_uid
+        item.ReferencedSOPInstanceUID = uid
+        out.append(item)
+    return out
+
+
 def _save(ds, path: str) -> None:
     tmp = path + ".part"
     ds.save_as(tmp, enforce_file_format=True)
@@ -323,15 +337,9 @@ def write_rtstruct(path: str, ref: SeriesReference, masks: dict[str, np.ndarray]
     ds.StructureSetName = label[:64]
     ds.StructureSetDescription = DISCLAIMER
     ds.StructureSetDate, ds.StructureSetTime = ds.InstanceCreationDate, ds.InstanceCreationTime
-    contour_images = Sequence()
-    for uid in ref.sop_instance_uids:
-        item = Dataset()
-        item.ReferencedSOPClassUID = ref.sop_class_uid
-        item.ReferencedSOPInstanceUID = uid
-        contour_images.append(item)
     series = Dataset()
     series.SeriesInstanceUID = ref.series_uid
-    series.ContourImageSequence = contour_images
+    series.ContourImageSequence = _instances(ref)
     study = Dataset()
     study.ReferencedSOPClassUID = "1.2.840.10008.3.1.2.3.1"  # Detached Study Management (retired), as TPSs write it
     study.ReferencedSOPInstanceUID = ref.study_uid
@@ -521,15 +529,9 @@ def write_registration(path: str, ref: SeriesReference, field_mm: np.ndarray, de
     ds.ContentLabel = "WARPMPM"
     ds.ContentDescription = SHORT_DISCLAIMER
     ds.ContentCreatorName = ""
-    images = Sequence()
-    for uid in ref.sop_instance_uids:
-        item = Dataset()
-        item.ReferencedSOPClassUID = ref.sop_class_uid
-        item.ReferencedSOPInstanceUID = uid
-        images.append(item)
     series = Dataset()
     series.SeriesInstanceUID = ref.series_uid
-    series.ReferencedInstanceSequence = images
+    series.ReferencedInstanceSequence = _instances(ref)
     ds.ReferencedSeriesSequence = Sequence([series])
     identity = ["1.0", "0.0", "0.0", "0.0", "0.0", "1.0", "0.0", "0.0", "0.0", "0.0", "1.0", "0.0", "0.0", "0.0", "0.0", "1.0"]
 
@@ -547,13 +549,7 @@ def write_registration(path: str, ref: SeriesReference, field_mm: np.ndarray, de
     grid.GridResolution = [float(v) for v in g.spacing_mm]
     grid.VectorGridData = np.ascontiguousarray(field_mm, dtype="<f4").tobytes()
     reg = Dataset()
-    used = Sequence()
-    for uid in ref.sop_instance_uids:
-        item = Dataset()
-        item.ReferencedSOPClassUID = ref.sop_class_uid
-        item.ReferencedSOPInstanceUID = uid
-        used.append(item)
-    reg.ReferencedImageSequence = used
+    reg.ReferencedImageSequence = _instances(ref)
     reg.SourceFrameOfReferenceUID = source_frame_of_reference_uid or ref.frame_of_reference_uid
     reg.DeformableRegistrationGridSequence = Sequence([grid])
     reg.PreDeformationMatrixRegistrationSequence = matrix()
