@@ -444,13 +444,16 @@ def test_a_track_killed_midway_leaves_no_track_and_the_rerun_is_whole(tmp_path):
         t0 = time.time()
         while not first_frame_written() and proc.poll() is None and time.time() - t0 < 300:
             time.sleep(0.01)
-        assert proc.poll() is None, "the track ended before it could be interrupted"
+        if proc.poll() is not None:
+            raise AssertionError(f"the track ended (exit {proc.returncode}) before it could be interrupted: {proc.stderr.read()}")
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=120)
-        assert not out.exists()
+        assert not out.exists(), err
         if sig == signal.SIGINT:
-            assert proc.returncode == 130 and "interrupted: nothing was written" in err
-            assert not any(p.name.startswith(".track-") for p in work_dir.iterdir())
+            assert proc.returncode == 130 and "interrupted: nothing was written" in err, (proc.returncode, err)
+            time.sleep(0.5)
+            left = [p.name for p in work_dir.iterdir() if p.name.startswith(".track-")]
+            assert not left, (left, err)
         else:
             assert any(p.name.startswith(".track-") for p in work_dir.iterdir())
             done = subprocess.run(args, capture_output=True, text=True, timeout=300)
