@@ -440,7 +440,10 @@ def test_a_track_killed_midway_leaves_no_track_and_the_rerun_is_whole(tmp_path):
         return any(p.name.startswith(".track-") and (p / "labels" / "frame_0000.nii.gz").exists() for p in work_dir.iterdir())
 
     for sig in (signal.SIGKILL, signal.SIGINT):
-        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # a job started in the background by a non-interactive shell (as CI may run the suite) inherits SIGINT ignored:
+        # the child gets it back, as a terminal's Ctrl-C would reach it
+        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         t0 = time.time()
         while not first_frame_written() and proc.poll() is None and time.time() - t0 < 300:
             time.sleep(0.01)
