@@ -524,12 +524,6 @@ def _structure_mapping(items) -> dict[str, str]:
     return out
 
 
-def sitk_array(image):
-    import SimpleITK as sitk
-
-    return sitk.GetArrayFromImage(image)
-
-
 def _beam_on(path: str, n_frames: int) -> list[float]:
     import csv
 
@@ -677,11 +671,13 @@ def cmd_track(a) -> int:
         rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder, dicom=dicom, dose=dose,
                            dose_weights=weights)
         if dose is not None and dicom is not None:
+            import SimpleITK as sitk
+
             from .dicom_rt import write_rtdose
 
             plan = dose.dose.GetMetaData("plan_uid") if dose.dose.HasMetaDataKey("plan_uid") else None
             write_rtdose(os.path.join(work, "dicom", "RD_accumulated.dcm"), dicom.ref,
-                         sitk_array(dose.accumulated_image()), plan_uid=plan,
+                         sitk.GetArrayFromImage(dose.accumulated_image()), plan_uid=plan,
                          description="warpmpm accumulated dose (organs only)")
         os.remove(os.path.join(work, "pid"))
         if os.path.isdir(out):
