@@ -8,36 +8,31 @@ shows the most of the pancreas; targets: the true in-plane motion of the planes'
 of any 2D registration). Methods, all with the same information: ``copy`` (``propagate_planes``, or ``propagate`` with
 one plane), ``rigid`` (each seen organ's observed translation), ``nearest`` / ``global`` (organs on no plane),
 ``completion`` (default config) and ``completion_paper`` (the seed paper's organ materials). The slice-driven
-estimator of the same truths is in ``fem_truth_table.json`` (``benchmarks/fem_truth.py --table``): it is not re-run
-here (minutes a run). Prints one table per (case, load, planes); raw numbers in
-``benchmarks/results/completion_table.json`` with every organ's JSON scores and the solve's report.
+estimator of the same truths is run ``table`` of ``results/fem_truth.json`` (``benchmarks/fem_truth.py --table``):
+it is not re-run here (minutes a run). Prints one table per (case, load, planes); raw numbers: run ``table`` (or
+``series``) of ``benchmarks/results/completion.json``, with every organ's JSON scores and the solve's report.
 """
 
 import argparse
 import os
 import tempfile
 import time
-from dataclasses import replace
 
 import numpy as np
 
-import fem_truth
-import raw
+from warpmpm.experiment import raw_numbers as raw
+from warpmpm.experiment.fem_cases import field_run, load, peak_frame
 
 
-def report(path: str, estimate_path: str | None = None) -> str:
+def report(path: str, estimate_path: str | None = None, run: str = "table") -> str:
     """Markdown from a raw file: per (case, load, planes) each organ's copy, best same-information baseline for organs
     on no plane (``nearest`` / ``global``), ``completion``, and the slice-driven estimate of the same truth and planes
-    from ``fem_truth_table.json`` where it has the row."""
-    import json
-
-    with open(path) as fh:
-        rows = json.load(fh)["data"]
+    from run ``table`` of ``results/fem_truth.json`` where it has the row."""
+    rows = raw.load(path, run)
     est = {}
     if estimate_path and os.path.exists(estimate_path):
-        with open(estimate_path) as fh:
-            for r in json.load(fh)["data"]["runs"]:
-                est[(r["case"], r["load"], r["planes"])] = r["result"]["results"]["estimate"]["organs"]
+        for r in raw.load(estimate_path, "table")["runs"]:
+            est[(r["case"], r["load"], r["planes"])] = r["result"]["results"]["estimate"]["organs"]
     organs = ("pancreas", "stomach", "duodenum", "left_kidney")
     head = "| case | load | planes | " + " | ".join(f"{o.replace('_', ' ')}: copy / other / completion / estimate" for o in organs) + " |"
     lines = [head, "|---|---|---|" + "---|" * len(organs)]
@@ -58,29 +53,6 @@ def report(path: str, estimate_path: str | None = None) -> str:
     return "\n".join(lines)
 
 
-def field_run(img: str, lab: str, preset: str, field_path: str, case_name: str, planes: str):
-    """What a run on a field truth with the true in-plane motion of ``planes`` (a key of ``fem_truth.PLANES``) gives
-    every method: ``(cfg, prep, model, truth positions, slices, RunTargets, the copy's positions)``."""
-    from warpmpm.experiment.baselines import propagate
-    from warpmpm.experiment.case import prepare_case
-    from warpmpm.experiment.config import CaseConfig
-    from warpmpm.experiment.target_kinds import run_targets
-    from warpmpm.experiment.truth import gt_for_model, make_ground_truth
-
-    cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=field_path, targets="gt-inplane",
-                     device="cpu", particle_step=2 if case_name == "phantom" else 1)
-    cfg = replace(cfg, slices=fem_truth.slices_through_pancreas(cfg, fem_truth.PLANES[planes]))
-    prep = prepare_case(cfg)
-    gt = make_ground_truth(prep, cfg)
-    model = prep.model(cfg.organs)
-    gt_pos = gt_for_model(gt, model)
-    slices = prep.resolve_slices(model, cfg.slices)
-    tg = run_targets(prep, gt, model, gt_pos, slices, cfg)
-    copy = tg.combined_mm if tg.combined_mm is not None else propagate(
-        model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]))
-    return cfg, prep, model, gt_pos, slices, tg, copy
-
-
 def series_run(a):
     """Every frame of a 16-frame truth (breathing) in order, the completion warm-started from the last frame (the plane
     set fixed: its system and multigrid built once): each frame's solve time and the pancreas's and kidney's error
@@ -95,12 +67,12 @@ def series_run(a):
     out = []
     work = tempfile.mkdtemp(prefix="completion-series-")
     for name in a.cases.split(","):
-        case, preset, img, lab = fem_truth.load(name)
+        case, preset, img, lab = load(name)
         if img is None:
             img, lab = os.path.join(work, "phantom_image.nii.gz"), os.path.join(work, "phantom_labels.nii.gz")
             write_case_lazy(case, lab, img)
         tr = make_truth(case, preset, TruthConfig(loads=("breathing",), frames=16, seed=0))
-        n0 = fem_truth.peak_frame(tr)
+        n0 = peak_frame(tr)
         path = os.path.join(work, f"{name}_{n0}.nii.gz")
         from warpmpm.fields import write_field
 
@@ -142,8 +114,7 @@ def series_run(a):
                   f"{summary['median_s']:.2f} s, p95 {summary['p95_s']:.2f} s a frame; reduced: set up in {reduced.setup_s:.1f} s, "
                   f"then median {1e3 * summary['reduced_median_s']:.0f} ms, p95 {1e3 * summary['reduced_p95_s']:.0f} ms a frame", flush=True)
             out.append(summary)
-            raw.save(a.raw, out, quiet=True)
-    print(f"raw numbers: benchmarks/results/{a.raw}.json")
+            raw.save(__file__, out, run=a.raw, quiet=True)
 
 
 def write_case_lazy(case, lab, img):
@@ -157,16 +128,16 @@ def main():
     p.add_argument("--cases", default="mr,ct,phantom")
     p.add_argument("--loads", default="breathing,breathing+push")
     p.add_argument("--planes", default="sagittal+coronal,sagittal")
-    p.add_argument("--raw", type=raw.check_name, default="completion_table")
+    p.add_argument("--raw", type=raw.check_name, default="table", help="the run's name in benchmarks/results/completion.json")
     p.add_argument("--series", action="store_true", help="every frame of a breathing truth in order, warm-started: time a frame")
-    p.add_argument("--report", default=None, metavar="JSON", help="print the markdown table of a raw file and stop")
+    p.add_argument("--report", action="store_true", help="print the markdown table of run --raw of results/completion.json and stop")
     a = p.parse_args()
     if a.report:
-        print(report(a.report, os.path.join(raw.RESULTS, "fem_truth_table.json")))
+        print(report(raw.results_path(__file__), raw.results_path(os.path.join(os.path.dirname(os.path.abspath(__file__)), "fem_truth.py")), a.raw))
         return
     if a.series:
-        if a.raw == "completion_table":
-            a.raw = "completion_series"
+        if a.raw == "table":
+            a.raw = "series"
         series_run(a)
         return
     from warpmpm.experiment.organs import baseline_positions, organ_scores, true_distances
@@ -179,7 +150,7 @@ def main():
     work = tempfile.mkdtemp(prefix="completion-")
     for name in a.cases.split(","):
         try:
-            case, preset, img, lab = fem_truth.load(name)
+            case, preset, img, lab = load(name)
         except SystemExit as e:
             print(e)
             continue
@@ -188,7 +159,7 @@ def main():
             write_case(case, lab, img)
         for loads in a.loads.split(","):
             series = make_truth(case, preset, TruthConfig(loads=tuple(loads.split("+")), frames=16, seed=0))
-            n = fem_truth.peak_frame(series)
+            n = peak_frame(series)
             path = os.path.join(work, f"{name}_{loads}_{n}.nii.gz")
             write_field(series.field(n), case.geometry, path)
             for label in a.planes.split(","):
@@ -211,7 +182,7 @@ def main():
                 row = {"case": name, "load": loads, "planes": label, "slices": cfg.slices, "frame": n, "seen": seen,
                        "truth_made_by": series.record["made_by"], "scores": scores, "info": {m: i for m, (_, i) in methods.items()}}
                 rows.append(row)
-                raw.save(a.raw, rows, quiet=True)
+                raw.save(__file__, rows, run=a.raw, quiet=True)
                 print(f"\n{name}, {loads}, {label} ({cfg.slices}), frame {n}; seen: {', '.join(seen)}; "
                       f"completion {methods['completion'][1]['wall_s']:.1f} s, {methods['completion'][1]['unknowns']:,} unknowns, "
                       f"converged {methods['completion'][1]['converged']}")
@@ -220,8 +191,7 @@ def main():
                 for m, sc in scores.items():
                     cells = [f"{sc[o]['error_mm']:.2f}" if (m not in ("nearest", "global") or o not in seen) else "" for o in model.organs]
                     print(f"| {m} | " + " | ".join(cells) + " |", flush=True)
-    raw.save(a.raw, rows)
-    print(f"\nraw numbers: benchmarks/results/{a.raw}.json")
+    raw.save(__file__, rows, run=a.raw)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ paper's point (5.11 mm, 2587 s per estimate on a CPU), and writes a PNG plot.
 from captured targets to 3D estimate, each frame from the last, and reports per-frame latency
 (median, p95) and error.
 
-    python benchmarks/error_vs_time.py --out benchmarks/error_vs_time.png
+    python benchmarks/error_vs_time.py --out benchmarks/results/error_vs_time.png
     python benchmarks/error_vs_time.py --stream 20 [--solver explicit,quasistatic]
 """
 
@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 
-import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
+from warpmpm.experiment import raw_numbers as raw
 
 import warp as wp
 
@@ -93,7 +93,7 @@ def pareto(rows):
 
 
 def stream(a, device):
-    """``--stream N``: one row per solver of ``--solver`` (same run), latency and error per frame; raw ``results/stream.json``."""
+    """``--stream N``: one row per solver of ``--solver`` (same run), latency and error per frame; raw numbers: run ``stream`` of ``results/error_vs_time.json``."""
     rows = {}
     threads = [None] if a.threads is None else [int(t) for t in a.threads.split(",")]
     for method in a.solver.split(","):
@@ -101,7 +101,7 @@ def stream(a, device):
             name = method if th is None else f"{method}, {th} thread{'s' if th > 1 else ''}"
             print(f"solver {name}:")
             rows[name] = stream_one(a, device, method, th)
-    raw.save("stream", rows | {"solvers": list(rows)})
+    raw.save(__file__, rows | {"solvers": list(rows)}, run="stream")
     base = rows[next(iter(rows))]
     print("\n| solver | median latency ms | p95 ms | first frame ms | median steps (Newton iterations) | mean error mm | latency / first solver's |")
     print("|---|---|---|---|---|---|---|")
@@ -161,7 +161,7 @@ def main(argv=None):
     p.add_argument("--solver", default="explicit", help="--stream: solvers to compare, comma-separated (explicit, quasistatic)")
     p.add_argument("--threads", default=None, help="--stream: CPU threads of a step to compare, comma-separated (e.g. 1,2; "
                    "default: the solver's default)")
-    p.add_argument("--out", default="benchmarks/error_vs_time.png")
+    p.add_argument("--out", default="benchmarks/results/error_vs_time.png")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines
     wp.init()
@@ -179,8 +179,8 @@ def main(argv=None):
         print(f"| {r['step']} | {r['ppc']:g} | {r['th_d']} | {solver} | {r['n']} | {r['error']:.2f} | {r['wall']:.2f} | {r['steps']:.0f} | "
               f"{'yes' if r in front else ''} |")
     print(f"| initial (no estimation) | | | | | {np.mean([r['initial'] for r in rows]):.2f} | | | |")
-    raw.save("error_vs_time" if a.labels is None else "error_vs_time_" + re.sub(r"[^A-Za-z0-9_.-]", "_", os.path.basename(os.path.dirname(os.path.abspath(a.labels)))),
-             [dict(r, pareto=r in front) for r in rows])
+    raw.save(__file__, run="default" if a.labels is None else "case_" + re.sub(r"[^A-Za-z0-9_.-]", "_", os.path.basename(os.path.dirname(os.path.abspath(a.labels)))),
+             data=[dict(r, pareto=r in front) for r in rows])
     print("| paper, psdl best slice (AMOS, 96-core CPU) | | | | | 5.11 | 2587 | | |")
     try:
         import matplotlib

@@ -29,7 +29,7 @@ import warnings
 import numpy as np
 
 
-import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
+from warpmpm.experiment import raw_numbers as raw
 import warp as wp
 
 from warpmpm.driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator
@@ -154,8 +154,8 @@ def main(argv=None):
                                f"{r['wall_s']:.1f} s)" for r in res)
             ratio = (" | " + " / ".join(f"{r['wall_s'] / res[0]['wall_s']:.2f}" for r in res[1:])) if ratio_name else ""
             print(f"| {sname} | {lname} | {cells}{ratio} |", flush=True)
-    raw.save("fem_quasistatic" if a.quasistatic else ("fem_acceleration_affine" if a.affine else "fem_acceleration") if a.acceleration
-             else "fem_reference", rows)
+    raw.save(__file__, run="quasistatic" if a.quasistatic else ("acceleration_affine" if a.affine else "acceleration") if a.acceleration
+             else "default", data=rows)
 
 
 def _extrapolate(u):
@@ -221,7 +221,7 @@ def fem_convergence(size, levels=(1, 2), scene_names=None, load_names=None):
                     cells += ["not asymptotic", "", "", ""]
             rows.append(row)
             print(f"| {sname} | {lname} | " + " | ".join(cells) + " |", flush=True)
-    raw.save("fem_convergence" + ("_3levels" if len(levels) == 3 else ""), rows)
+    raw.save(__file__, rows, run="fem_convergence" + ("_3levels" if len(levels) == 3 else ""))
 
 
 def ppc_sweep(size):
@@ -238,7 +238,7 @@ def ppc_sweep(size):
         print(f"| {ppc:g} | {r['dx_mm']:.2f} | {r['steps']} | {100 * r['rel_l2']:.1f} % | {r['mean_error_mm']:.3f} | "
               f"{near['in_plane_mm']:.3f} / {near['through_plane_mm']:.3f} | {far['through_plane_mm']:.3f} | {far['fem_mm']:.3f} |",
               flush=True)
-    raw.save("fem_reference_ppc", rows)
+    raw.save(__file__, rows, run="ppc")
 
 
 def grid_shift(size):
@@ -253,7 +253,7 @@ def grid_shift(size):
         res = {name: compare(model, load, ("settled", SolverConfig(device="cpu"), SETTLED, None)) for name, load in LOADS.items()}
         rows.append({"shift_cells": frac, **res})
         print(f"| {frac:g} | " + " | ".join(f"{100 * r['rel_l2']:.1f} % ({r['steps']} steps)" for r in res.values()) + " |", flush=True)
-    raw.save("fem_reference_grid_shift", rows)
+    raw.save(__file__, rows, run="grid_shift")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ largest motion): the relative L2 difference of the pancreas's displacement (targ
 """
 
 import argparse
-import json
 import os
 import tempfile
 import time
@@ -25,45 +24,8 @@ from dataclasses import replace
 
 import numpy as np
 
-import raw
-
-DATA = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
-CASES = {"mr": ("totalseg_mr", "totalseg_mr"), "ct": ("totalseg_ct", "totalseg_ct")}
-PLANES = {"sagittal": ("sagittal",), "sagittal+coronal": ("sagittal", "coronal"), "axial": ("axial",),
-          "axial+sagittal+coronal": ("axial", "sagittal", "coronal")}
-
-
-def load(name):
-    from warpmpm.images import load_case
-    from warpmpm.phantom import make_phantom
-
-    if name == "phantom":
-        return make_phantom(seed=1), "amos", None, None
-    folder, preset = CASES[name]
-    lab, img = os.path.join(DATA, folder, "labels.nii.gz"), os.path.join(DATA, folder, "image.nii.gz")
-    if not os.path.exists(lab):
-        raise SystemExit(f"skipped {name}: the sample data is not at {DATA}")
-    return load_case(lab, img, preset), preset, img, lab
-
-
-def peak_frame(series) -> int:
-    return int(np.argmax([f["pancreas_mean_mm"] for f in series.record["frames"]]))
-
-
-def slices_through_pancreas(cfg, planes) -> str:
-    """Each plane where it shows the most of the pancreas (the layer of the run's particle model holding the most
-    pancreas particles: a plane through the centroid can miss a curved pancreas; on the CT sample the median sagittal
-    layer holds 3 of its particles)."""
-    from warpmpm.experiment.case import prepare_case
-
-    prep = prepare_case(cfg)
-    pan = prep.full_model.subset(("pancreas",))
-    out = []
-    for p in planes:
-        counts = pan.slice_counts(p)[:, 0]
-        out.append(prep.label(p, int(np.argmax(counts))))
-    return ",".join(out)
-
+from warpmpm.experiment import raw_numbers as raw
+from warpmpm.experiment.fem_cases import PLANES, load, peak_frame, slices_through_pancreas
 
 def table(a):
     from warpmpm.experiment.config import CaseConfig
@@ -112,7 +74,7 @@ def table(a):
                                  **{o: s["error_mm"] for o, s in r["organs"].items()},
                                  "seen": "".join(o[0] for o, s in r["organs"].items() if s["seen"]),
                                  "settled": r.get("settled", "")})
-                raw.save(a.raw or "fem_truth_table", {"rows": rows, "runs": runs}, quiet=True)  # kept as it goes
+                raw.save(__file__, {"rows": rows, "runs": runs}, run=a.raw or "table", quiet=True)  # kept as it goes
                 est = j["results"]["estimate"]
                 print(f"  {label}: estimate {est['error_mm']:.2f} mm ({est['steps']} steps, settled {est['settled']})", flush=True)
     organs = ("pancreas", "stomach", "duodenum", "left_kidney")
@@ -122,15 +84,14 @@ def table(a):
         lines.append(f"| {r['case']} | {r['load']} | {r['planes']} | {r['method']} | {cells} | {r['seen']} |")
     print("\nmean error mm per organ, driven particles included (true in-plane motion of the planes):")
     print("\n".join(lines))
-    raw.save(a.raw or "fem_truth_table", {"rows": rows, "runs": runs})
+    raw.save(__file__, {"rows": rows, "runs": runs}, run=a.raw or "table")
 
 
-def report(path: str, loads: str | None = None, planes: str | None = None) -> str:
+def report(path: str, loads: str | None = None, planes: str | None = None, run: str = "table") -> str:
     """Markdown from a ``--table`` raw file: one row per (case, load, planes, organ), each method's mean error (mm);
     the copy is ``propagate_planes`` with several planes, else ``propagate``; ``nearest`` / ``global`` only for organs
     on no plane."""
-    with open(path) as fh:
-        runs = json.load(fh)["data"]["runs"]
+    runs = raw.load(path, run)["runs"]
     lines = ["| case | load | planes | organ | seen | initial | copy of the planes | rigid | nearest | global | estimate |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
@@ -185,8 +146,8 @@ def convergence(a):
               + ", ".join(f"{o} {100 * row[o]:.1f} %" for o in ("stomach", "duodenum", "left_kidney") if o in row)
               + f"; {row['unknowns'][0]:,} / {row['unknowns'][1]:,} unknowns, {t_coarse:.0f} s (16 frames) / {t_fine:.0f} s (1 frame)",
               flush=True)
-        raw.save(a.raw or "fem_truth_convergence", out, quiet=True)
-    print(f"raw numbers: benchmarks/results/{a.raw or 'fem_truth_convergence'}.json")
+        raw.save(__file__, out, run=a.raw or "convergence", quiet=True)
+    print(f"raw numbers: {raw.results_path(__file__)} (run {a.raw or 'convergence'!r})")
 
 
 if __name__ == "__main__":
@@ -196,12 +157,12 @@ if __name__ == "__main__":
     p.add_argument("--cases", default="mr,ct,phantom")
     p.add_argument("--loads", default="breathing,breathing+push")
     p.add_argument("--cell-mm", type=float, default=5.0)
-    p.add_argument("--raw", type=raw.check_name, default=None, help="name of the raw-numbers file in benchmarks/results/")
-    p.add_argument("--report", default=None, metavar="JSON", help="print the per-organ table of a --table raw file and stop")
+    p.add_argument("--raw", type=raw.check_name, default=None, help="the run's name in benchmarks/results/fem_truth.json (default: table or convergence)")
+    p.add_argument("--report", action="store_true", help="print the per-organ table of run --raw (default table) of results/fem_truth.json and stop")
     p.add_argument("--planes", default=None, help="with --report: only these plane sets (comma-separated)")
     a = p.parse_args()
     if a.report:
-        print(report(a.report, a.loads if a.loads != "breathing,breathing+push" else None, a.planes))
+        print(report(raw.results_path(__file__), a.loads if a.loads != "breathing,breathing+push" else None, a.planes, a.raw or "table"))
         raise SystemExit(0)
     if not (a.table or a.convergence):
         p.error("choose --table and/or --convergence")

@@ -20,7 +20,7 @@ from collections import defaultdict
 import numpy as np
 
 
-import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
+from warpmpm.experiment import raw_numbers as raw
 
 import warp as wp
 
@@ -100,7 +100,7 @@ def main(argv=None):
         print(f"| {k} | {counts[k]} | {times[k]:.3f} | {times[k] / res.steps * 1e3:.3f} | {times[k] / wall:.1%} |")
     rest = wall - sum(times.values())
     print(f"| Python: drive loop, stopping rule, bookkeeping | | {rest:.3f} | {rest / res.steps * 1e3:.3f} | {rest / wall:.1%} |")
-    raw.save("frame_profile", {"particles": model.n, "grid_shape": list(est.mpm.grid_shape), "steps": res.steps, "frame_s": wall,
+    raw.save(__file__, {"particles": model.n, "grid_shape": list(est.mpm.grid_shape), "steps": res.steps, "frame_s": wall,
                                "seconds": dict(times), "calls": dict(counts), "launch_overhead_us": overhead})
     print(f"| (of the launches: launch overhead, {overhead:.1f} us each) | {n_launch} | {n_launch * overhead * 1e-6:.3f} | "
           f"{n_launch * overhead * 1e-3 / res.steps:.3f} | {n_launch * overhead * 1e-6 / wall:.1%} |")

@@ -28,7 +28,7 @@ import numpy as np
 import SimpleITK as sitk
 
 
-import raw
+from warpmpm.experiment import raw_numbers as raw
 from rendering_speed import moved_positions
 from warpmpm.model import build_model
 from warpmpm.phantom import make_phantom
@@ -100,7 +100,7 @@ def main(argv=None):
     print(f"displacement field now / previous: {rows['ratio']:.2f}x; largest difference where kept {rows['diff_where_kept_max_mm']:.1e} mm, "
           f"where zeroed {rows['diff_elsewhere_max_mm']:.4f} mm (the field reaches {rows['field_max_mm']:.1f} mm; "
           f"{100 * rows['voxels_kept']:.0f} % of the voxels kept)")
-    raw.save("output_speed", rows)
+    raw.save(__file__, rows)
     return 0
 
 

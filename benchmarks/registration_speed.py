@@ -18,7 +18,7 @@ import numpy as np
 import SimpleITK as sitk
 
 
-import raw
+from warpmpm.experiment import raw_numbers as raw
 from warpmpm.phantom import make_phantom
 from warpmpm.registration import one_itk_thread, register_slices, resample_slice_affine, slice_mask
 from warpmpm.slices import extract_slice
@@ -88,7 +88,7 @@ def main():
             threads = 1 if one else sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
             print(f"| {n} x {n} ({px:g} mm) | {backend} | {threads} | {np.median(times) * 1e3:.1f} | {np.median(errs):.3f} |")
             out.append({"pixels_mm": px, "backend": backend, "itk_threads": threads, "times_s": times, "rms_errors_mm": errs})
-    raw.save("registration_speed", out)
+    raw.save(__file__, out)
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ import numpy as np
 import SimpleITK as sitk
 
 
-import raw
+from warpmpm.experiment import raw_numbers as raw
 from warpmpm import rendering
 from warpmpm.model import build_model
 from warpmpm.phantom import make_phantom
@@ -139,7 +139,7 @@ def main(argv=None):
     print(f"frame render against the render through the whole-volume field, within 8 mm of the particles (fraction of the "
           f"image range): previous mean {rows['render_previous_vs_whole_mean']:.2e} max {rows['render_previous_vs_whole_max']:.3f}; "
           f"now mean {rows['render_now_vs_whole_mean']:.2e} max {rows['render_now_vs_whole_max']:.3f}")
-    raw.save("rendering_speed", rows)
+    raw.save(__file__, rows)
     return 0
 
 

@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 
-import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
+from warpmpm.experiment import raw_numbers as raw
 
 import warp as wp
 
@@ -78,7 +78,7 @@ def main(argv=None):
             med, p95, n = time_rank(plane, full, ("sagittal", "coronal"), a.repeats)
             print(f"| {name} | {full.n} | sagittal + coronal (psdl) | {n} | {med:.2f} | {p95:.2f} | | |")
             out.append({"case": name, "particles": full.n, "model": "planes", "candidates": n, "median_ms": med, "p95_ms": p95})
-    raw.save("selection_speed", out)
+    raw.save(__file__, out)
     print("\npaper: 1.48 +- 0.151 ms per choice (20-35 slices, 3 surrounding organs)")
 
 

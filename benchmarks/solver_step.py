@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 
-import raw  # benchmarks/raw.py: raw numbers beside the tables of benchmarks/README.md
+from warpmpm.experiment import raw_numbers as raw
 
 import warp as wp
 
@@ -158,7 +158,7 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=2, help="threads of warpmpm's split CPU step (timed beside one thread)")
     p.add_argument("--runs", type=int, default=1, help="repeat the whole measurement this many times (the issue's figure: the "
                    "median of five runs' ratios)")
-    p.add_argument("--raw", type=raw.check_name, default="solver_step", help="name of the raw-numbers file in benchmarks/results/")
+    p.add_argument("--raw", type=raw.check_name, default="default", help="the run's name in benchmarks/results/solver_step.json")
     a = p.parse_args(argv)
     wp.config.log_level = wp.LOG_ERROR  # no init banner or module-load lines
     wp.init()
@@ -206,7 +206,7 @@ def main(argv=None):
             gain = [run[i]["warpmpm_1_thread_s_per_step"] / run[i]["warpmpm_s_per_step"] for run in runs]
             print(f"| {r['particles']} | {', '.join(f'{x:.2f}' for x in ratios)} | **{np.median(ratios):.2f}** | {np.median(one):.2f} | "
                   f"{np.median(gain):.2f} |")
-    raw.save(a.raw, runs[0] if len(runs) == 1 else runs)
+    raw.save(__file__, runs[0] if len(runs) == 1 else runs, run=a.raw)
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ import subprocess
 import sys
 
 
-import raw
+from warpmpm.experiment import raw_numbers as raw
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 DATA = os.path.join(ROOT, "..", "shared", "data", "totalseg_mr")
@@ -115,7 +115,7 @@ def main(argv=None):
             print(f"| {name} | {cfg} | {row['estimate_mm']:.3f} | {row['propagate_mm']:.3f} | {row['initial_mm']:.3f} | {row['dice']:.3f} | "
                   f"{row['registration_ms']:.0f} | {row['reference_ms']:.0f} | {row['latency_s']:.3f} ({row['p95_s']:.3f}) | {'/'.join(row['solvers'])} | "
                   f"{row['settled']} of {row['frames']} |")
-    raw.save("track_series" if a.case == "mr" else "track_series_phantom", rows)
+    raw.save(__file__, rows, run=a.case)
     return 0
 
 

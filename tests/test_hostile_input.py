@@ -526,22 +526,23 @@ def test_make_cine_refuses_an_out_that_is_a_file_or_holds_a_series(tmp_path, cap
     assert sorted(p.name for p in d.iterdir()) == ["frame_0000.dcm"]
 
 
-def test_a_raw_numbers_name_that_leaves_the_results_folder_is_refused(tmp_path, monkeypatch):
-    """Benchmarks write benchmarks/results/<--raw>.json: a name with a folder in it is refused before the run (the
-    option's type) and at the write, and nothing is written."""
-    import importlib.util
+def test_a_raw_numbers_run_name_that_is_not_a_key_is_refused_and_runs_are_kept(tmp_path):
+    """Benchmarks keep their numbers in results/<script>.json, one entry per run: a run name with a folder in it is
+    refused before the run (the option's type) and at the write, and nothing is written; a second run keeps the first."""
+    from warpmpm.experiment import raw_numbers as raw
 
-    spec = importlib.util.spec_from_file_location("raw", os.path.join(os.path.dirname(os.path.abspath(__file__)), "..",
-                                                                       "benchmarks", "raw.py"))
-    raw = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(raw)
-
-    monkeypatch.setattr(raw, "RESULTS", str(tmp_path / "results"))
+    script = str(tmp_path / "bench.py")
     for bad in ("../elsewhere", "a/b", "x.json", "", ".hidden"):
-        with pytest.raises(ValueError, match="raw-numbers name"):
-            raw.save(bad, {"n": 1})
-    assert not (tmp_path / "results").exists() and not (tmp_path / "elsewhere.json").exists()
-    assert os.path.basename(raw.save("fine_name-2.x", {"n": 1})) == "fine_name-2.x.json"
+        with pytest.raises(ValueError, match="raw-numbers run name"):
+            raw.save(script, {"n": 1}, run=bad)
+    assert not (tmp_path / "results").exists()
+    path = raw.save(script, {"n": 1}, run="fine_name-2.x", quiet=True)
+    assert path == str(tmp_path / "results" / "bench.json")
+    raw.save(script, {"n": 2}, quiet=True)
+    assert raw.load(path, "fine_name-2.x") == {"n": 1} and raw.load(path) == {"n": 2}
+    with pytest.raises(KeyError, match="holds no run 'other'; it holds default, fine_name-2.x"):
+        raw.load(path, "other")
+    assert sorted(os.listdir(tmp_path / "results")) == ["bench.json"]
 
 
 def test_a_degenerate_registration_names_the_slice_the_user_gave(monkeypatch):

@@ -1,10 +1,9 @@
-"""Study (one-off): variants of the completion solve's config against the copies on finite-element truths (one case,
+"""Study (2026-12-03; answer in docs/decisions/2026-12-03-completion-solve.md): variants of the completion solve's config against the copies on finite-element truths (one case,
 one load, plane sets); the figures quoted in docs/decisions/2026-12-03-completion-solve.md.
 
-    PYTHONPATH=benchmarks python benchmarks/studies/completion_study.py --case mr --loads breathing \
+    python benchmarks/studies/completion_study.py --case mr --loads breathing \
         --planes sagittal+coronal,sagittal --variants default,off10
 
-(``PYTHONPATH=benchmarks``: it reuses the cases and scoring of ``benchmarks/completion.py`` and ``fem_truth.py``.)
 """
 
 import argparse
@@ -13,8 +12,8 @@ import time
 
 import numpy as np
 
-import completion as completion_bench
-import fem_truth
+from warpmpm.experiment import raw_numbers as raw
+from warpmpm.experiment.fem_cases import field_run, load, peak_frame
 
 
 def main():
@@ -31,13 +30,13 @@ def main():
     from warpmpm.truth_fem import TruthConfig, make_truth
     import tempfile
 
-    case, preset, img, lab = fem_truth.load(a.case)
+    case, preset, img, lab = load(a.case)
     work = tempfile.mkdtemp()
     if img is None:
         img, lab = os.path.join(work, "i.nii.gz"), os.path.join(work, "l.nii.gz")
         write_case(case, lab, img)
     series = make_truth(case, preset, TruthConfig(loads=tuple(a.loads.split("+")), frames=16, seed=0))
-    n = fem_truth.peak_frame(series)
+    n = peak_frame(series)
     path = os.path.join(work, "t.nii.gz")
     write_field(series.field(n), case.geometry, path)
     variants = {"default": {}, "elastic_only": {"observed_first": False}, "no_off": {"off_plane_stiffness": 0.0},
@@ -46,9 +45,9 @@ def main():
                 "trans": {"off_plane_motion": "translation"}, "u0": {"unseen_direction_stiffness": 0.0},
                 "u1e-3": {"unseen_direction_stiffness": 1e-3}, "t1": {"tissue_stiffness": 1.0}, "t10": {"tissue_stiffness": 10.0},
                 "t100": {"tissue_stiffness": 100.0}}
+    out = []
     for label in a.planes.split(","):
-        cfg, prep, model, gt_pos, slices, tg, copy = completion_bench.field_run(img, lab, preset, path,
-                                                                                 a.case, label)
+        cfg, prep, model, gt_pos, slices, tg, copy = field_run(img, lab, preset, path, a.case, label)
         idx, targets, axes = tg.idx, tg.targets_mm, tg.drive.axes
         on = np.zeros(model.n, bool)
         on[idx] = True
@@ -69,12 +68,15 @@ def main():
             rows["C:" + v] = r.positions_mm
         print(f"{a.case} {a.loads} {label} ({cfg.slices}), frame {n}")
         print("method".ljust(22) + "".join(o[:10].rjust(11) for o in model.organs) + "   dist-err s/d/k")
+        scores = {}
         for name, pos in rows.items():
-            sc = organ_scores(model, pos, gt_pos, on)
+            sc = scores[name] = organ_scores(model, pos, gt_pos, on)
             dist = " ".join(f"{sc[o]['distance_error_mm']:+.1f}" for o in model.organs if "distance_error_mm" in sc[o])
             print(name.ljust(22) + "".join(f"{sc[o]['error_mm']:11.2f}" for o in model.organs) + "   " + dist
                   + "   seen " + "".join(o[0] for o in model.organs if sc[o]["seen"])
                   + "   lr/ap/si " + " ".join(f"{sc[o]['lr_mm']:.1f}/{sc[o]['ap_mm']:.1f}/{sc[o]['si_mm']:.1f}" for o in model.organs))
+        out.append({"case": a.case, "loads": a.loads, "planes": label, "slices": cfg.slices, "frame": n, "scores": scores})
+    raw.save(__file__, out, run=f"{a.case}_{a.loads}".replace("+", "-"))
 
 
 if __name__ == "__main__":
