@@ -58,7 +58,7 @@ class ConvergenceConfig:
 
     The paper uses TH_D = 4; the default here is 3: with the solver's default damping the estimate has
     settled when the residual stops changing in its third decimal, and TH_D = 4 spends 1.8x the steps
-    for 0.02 mm (phantom, 8 deformations; benchmarks/README.md). ``ConvergenceConfig.paper()`` gives
+    for 0.02 mm (phantom, 8 deformations; benchmarks/studies/convergence_curves.py). ``ConvergenceConfig.paper()`` gives
     the paper's values.
 
     Those rules watch only the driven particles. Two more checks say what the stop means:
@@ -68,7 +68,7 @@ class ConvergenceConfig:
     displacement over the last ``th_s`` steps): below ``settle_mm`` the body has *settled*.
     With ``wait_settled`` a frame runs on until the body has settled too: the *settled mode*, in which the
     estimator also damps adaptively (:attr:`SolverConfig.damping_rule` ``"auto"``) and drives without the
-    integral term (:attr:`DriveConfig.ki_ratio` None); the mode the FEM reference checks (benchmarks/README.md).
+    integral term (:attr:`DriveConfig.ki_ratio` None); the mode the FEM reference checks (docs/performance.md).
     """
 
     th_v: float = 0.0015

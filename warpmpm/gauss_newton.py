@@ -17,7 +17,7 @@ differences) are sampled at ``V(y)``, the Jacobian of the standardised samples i
 warp too), and ``dp = -(J^T J + prior)^-1 (J^T e + prior)`` solves a 6 x 6 system. A pyramid level smooths both
 slices by a Gaussian of ``(f - 1) / 2`` pixels, ``f`` the level's factor, and samples every ``f``-th pixel.
 
-What was tried (``benchmarks/README.md``): the inverse-compositional variant (``J`` once from the template: 30 %
+What was tried: the inverse-compositional variant (``J`` once from the template: 30 %
 faster, but its fixed point is the correlation's maximum only at zero residual); sampling the stored slice's own
 pixels (``domain="stored"``: on the MR cine series it left a constant 0.02-0.05 mm a frame that added up along a
 series); the exact gradient of the bilinear interpolant (its kinks at pixel edges kept noisy frames cycling and

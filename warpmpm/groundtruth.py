@@ -134,7 +134,7 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
     cfg = gt_solver_config(solver_config, device)
     if len(driven) < model.n:  # undriven particles must stay coupled through the grid (thick slices)
         # the cell at least the gap: the rule every protocol's truth was made with. Its finer grid holds 1.16 (phantom)
-        # to 1.26 (3 mm samples) layers a cell, outside the one-layer-a-cell mode (benchmarks/README.md: on a thick-slice
+        # to 1.26 (3 mm samples) layers a cell, outside the one-layer-a-cell mode (docs/decisions/2026-12-03-solver-defaults.md; on a thick-slice
         # block 1.16 layers already give the FEM's answer within 2.8 %, one layer 9.7 %)
         cfg = replace(cfg, cell_at_least_gap=True, min_layers_per_cell=1.0)
         if cfg.cell_size_mm is not None and cfg.cell_size_mm < model.max_gap_mm:

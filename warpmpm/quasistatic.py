@@ -257,7 +257,7 @@ COARSE_AFTER = 20
 CG_CHECK_EVERY = 10
 
 #: slots each dot product of the conjugate gradient is spread over (by node index), then summed by one thread: a GPU
-#: would serialise ~130,000 atomics on one address an iteration otherwise (benchmarks/README.md)
+#: would serialise ~130,000 atomics on one address an iteration otherwise (an estimate: docs/performance.md)
 DOT_SLOTS = 64
 
 

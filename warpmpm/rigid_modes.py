@@ -6,7 +6,7 @@ proportional to its modulus. The duodenum (2,900x the pancreas's shear modulus) 
 volume, and its motions on the soft pancreas, held by a few driven particles, are the slowest modes of the scene by
 far (on the resolution-3 phantom the slowest swings at ``omega dt`` 0.009, 13x below the slowest deformation of the
 body ``pi c / L``): a frame needs thousands of steps to settle, and the settled rule can be fooled by a motion too
-slow to register (benchmarks/README.md, "Rigid-mode acceleration").
+slow to register (docs/decisions/2026-12-03-solver-defaults.md).
 
 What. The grid update's velocity change ``dv = M^-1 f dt`` becomes ::
 
@@ -26,7 +26,7 @@ it is: it swings at ``omega_t`` instead of ``omega_j``, and the adaptive damping
 ``aggregate_mm`` of one organ (:func:`aggregate_groups`): with whole organs as groups a stiff organ's bending is still
 slow; with 25 mm cubes the default phantom settles in 1,700 steps instead of 4,700, and in 1,100 when each cube
 moves with its 12 affine motions (:attr:`SolverConfig.rigid_mode_basis <warpmpm.solver.SolverConfig.rigid_mode_basis>`;
-but more work a step, so about the same time a frame: not the default; benchmarks/README.md).
+but more work a step, so about the same time a frame: not the default; docs/decisions/2026-12-03-solver-defaults.md).
 
 What it does not change. The equilibrium: where the force vanishes, so does the correction (it preconditions the
 relaxation, it is not physics). Stability: the eigenvalues of the preconditioned stiffness ``(M^-1 + Z B Z^T) K``
@@ -85,7 +85,7 @@ MAX_BOOST = 1.0e4
 
 #: the coarse level runs only when its slowest mode needs at least this boost (is 10x slower than the body's slowest
 #: deformation): the stiff-inclusion case it is for. A soft block alone has coarse modes needing at most ~40 and gained
-#: no steps from them (FEM blocks, settled: 400-700 steps either way, at 1.3-1.5x the time: benchmarks/README.md).
+#: no steps from them (FEM blocks, settled: 400-700 steps either way, at 1.3-1.5x the time).
 MIN_BOOST = 100.0
 
 #: the most groups a grid node keeps (the largest shares; the rest are dropped from ``Z`` everywhere alike)

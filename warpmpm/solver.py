@@ -55,15 +55,12 @@ class QuasiStaticConfig:
     penalty: float = 0.09
     """Drive stiffness per driven particle, as a multiple of its own stiffness ``(lambda + 2 mu) V0 4/dx^2``. The
     default 0.09 is the spring of the explicit solver's PD drive (``m Kp`` with its default gains under mass
-    scaling: ``0.36 (lambda + 2 mu) V0 / dx^2``), so both solvers seek the same equilibrium. Measured against the
-    FEM (40 mm blocks, benchmarks/README.md): a stiffer spring pins a single particle layer harder than the grid
-    can follow without stretching its neighbours (scaled soft block 10 % at 0.09, 15 % at 1, 17 % at 10, 18 %
-    exact); rotation 2.5 % at every value."""
+    scaling: ``0.36 (lambda + 2 mu) V0 / dx^2``), so both solvers seek the same equilibrium (docs/decisions/2026-12-03-solver-defaults.md)."""
     regularization: float = 1e-3
     """Mass-proportional term ``k_reg M`` added to the stiffness, as a multiple of the stiffness scale at a full node
     (an implicit pseudo-time step): a node at a stencil's fringe, which carries little weight, and a part of the body
     nothing holds stay in place instead of making the system singular. It slows the softest modes, never moves the
-    equilibrium. 1e-4 of the diagonal instead (the first try) let single particles of the phantom swing by metres."""
+    equilibrium (docs/decisions/2026-12-03-solver-defaults.md)."""
     settle_mm: float = 0.01
     """Settled when an iteration moves no particle by more than this (mm) and the motion still to come, extrapolated
     from how fast the iterations' moves decay, is below it too (the regularisation slows the softest modes, so a small
@@ -81,12 +78,11 @@ class QuasiStaticConfig:
     auto_newton_iterations: int = 3
     """``SolverConfig(method="auto")``: Newton iterations the quasi-static solve gets before the frame goes on with
     explicit steps from where it stopped (it also stops at the first iteration whose linear solve reaches
-    ``auto_max_cg_iterations``): a frame that starts near its equilibrium (a predicted tracker frame: measured, 1
-    iteration) is done at the quasi-static price, one that does not costs little more than the explicit steps."""
+    ``auto_max_cg_iterations``): a frame that starts near its equilibrium (a predicted tracker frame) is done at the
+    quasi-static price, one that does not costs little more than the explicit steps."""
     auto_max_cg_iterations: int = 40
     """``method="auto"``: conjugate-gradient iterations per Newton iteration before the quasi-static start gives up
-    (measured: a predicted tracker frame needs 0; an unpredicted one 300 a Newton iteration, which made an
-    unpredicted tracker frame 5.9 s against 1.8 s explicit before this cap)."""
+    (docs/decisions/2026-12-03-solver-defaults.md)."""
     max_strain_step: float = 0.2
     """... and changes no particle's deformation by more than this (Frobenius norm of the displacement gradient of
     the step): the small-strain stiffness is the Hessian at rest, so a longer step could invert an element."""
@@ -106,35 +102,17 @@ class QuasiStaticConfig:
             raise InputError(f"QuasiStaticConfig.cg_tolerance must be below 1, got {self.cg_tolerance}")
 
 
-#: Fewest particle layers a derived grid cell spans along any axis (the default of ``SolverConfig.min_layers_per_cell``). With one layer
-#: a cell along an axis (the cell equal to the gap between axial layers: the paper resolution's 3 mm layers in 3 mm
-#: cells, a thick-slice lattice) the layers next to a driven slice move in a mode the grid does not see. Measured
-#: (benchmarks/README.md, "Why a whole-abdomen scene does not settle"): a 2 x 2 x 4 mm pancreas block with a slice
-#: turned 3 degrees, settled, 9.7 % off the FEM with 4 mm cells and 2.7 % with 6 mm (shear 12.8 -> 9.9 %, scale 43 ->
-#: 30 %); the phantom's paper-resolution frame (particle step 1) 5.32 mm from its truth with 3 mm cells, 2.92 with
-#: 4.5 mm (the particle step 2 model: 3.01). Lattices with 1.5 layers a cell or more (the 3 mm samples) are unchanged;
-#: the default phantom's cell grows from 4.4 to 4.5 mm.
+#: Fewest particle layers a derived grid cell spans along any axis (``SolverConfig.min_layers_per_cell``): with one
+#: layer a cell the layers next to a driven slice move in a mode the grid does not see (docs/decisions/2026-12-03-solver-defaults.md).
 MIN_LAYERS_PER_CELL = 1.5
 
 #: Edge (mm) of the cubes each organ is cut into for the coarse space of the rigid-mode acceleration
-#: (:mod:`warpmpm.rigid_modes`). Measured on the default phantom (a 2 % in-plane scale of its mid-pancreas slice,
-#: settled mode, steps to settle; benchmarks/README.md, "Rigid-mode acceleration"): no acceleration > 8,000 (not
-#: settled), whole organs 4,700, 40 mm 2,500, 25 mm 1,700 (0.31x the time).
+#: (:mod:`warpmpm.rigid_modes`); measured against whole organs, 40 mm cubes and no acceleration in docs/decisions/2026-12-03-solver-defaults.md.
 RIGID_MODE_AGGREGATE_MM = 25.0
 
 #: The motions of each cube of the rigid-mode acceleration's coarse space (``SolverConfig.rigid_mode_basis``): the 6
-#: rigid ones. The 12 affine ones (also stretches and shears) were measured (benchmarks/README.md, "Rigid-mode
-#: acceleration", eleventh session): on the default phantom under the load above 1,100 steps instead of 1,700 (the
-#: answers 0.02 mm apart), but 1.3-1.45x the time a step (twice the coarse modes, single-threaded), so 0.82x and 0.94x
-#: the time in two runs; the resolution-3 phantom 600 steps either way at 1.2-1.4x the time; the FEM blocks as close or
-#: closer (the hanging kidney block's scale 14.6 -> 13.2 %) at 0.75-1.33x the rigid one's time. Not enough to change
-#: the default. Re-measured in the twelfth session, with the coarse level's product over the boosted modes only and
-#: split over the threads: 23.7 and 25.1 s against 22.5 and 29.9 s for rigid (two runs, swapped order), still within
-#: the machine's drift.
-#: With rigid cubes the motion left at step 1,000 is the stomach moving as a rigid body (93 % of its motion) toward rest
-#: at ``omega dt`` ~0.006, 7x slower than the coarse modes' target: the slowest accelerated modes lie ~99 % (by mass) in
-#: the boosted coarse modes, and the ~1 % outside keeps its full inertia, so a mode's boost is capped at about one over
-#: that fraction (benchmarks/README.md); affine cubes hold more of it.
+#: rigid ones; the 12 affine ones settle in fewer steps at more work a step, within the machine's drift of the same
+#: time (docs/decisions/2026-12-03-solver-defaults.md).
 RIGID_MODE_BASIS = "rigid"
 #: the coarse bases there are
 RIGID_MODE_BASES = ("rigid", "affine")
@@ -153,13 +131,10 @@ class SolverConfig:
             through the shared grid.
         cell_size_mm: explicit grid cell size (overrides ``particles_per_cell``).
         margin_mm: free space around the scene's bounding box (and any extra points given) for motion.
-            Default 10 mm (was 30): the estimate's grid already covers the targets (and a tracker's
-            whole reach), and the body does not move far past its driven slice; the smaller grid is
-            ~35 % fewer nodes on the phantom (benchmarks/README.md). A particle that would still leave
-            it stops the run with an error naming this field.
+            Default 10 mm: the estimate's grid already covers the targets (and a tracker's whole reach)
+            (docs/decisions/2026-12-03-solver-defaults.md). A particle that would still leave it stops the run with an error naming this field.
         wall_cells: thickness of the slip-wall layer at the domain faces, in cells.
-        cfl: Courant number of the derived time step ``dt = cfl * dx / c``. Default 0.5 (was 0.3):
-            1.7x fewer steps per frame at the same accuracy (benchmarks/README.md, "Fewer steps").
+        cfl: Courant number of the derived time step ``dt = cfl * dx / c``. Default 0.5 (docs/decisions/2026-12-03-solver-defaults.md).
         cfl_limit: largest Courant number accepted for a user time step.
         dt_s: fixed time step (s); refused when above the stable limit.
         mass_scaling: give all materials the stiffest one's wave speed (see module docstring).
@@ -167,18 +142,14 @@ class SolverConfig:
             ``damping_factor * 2 pi c_s / L`` with ``c_s`` the median (scaled) shear wave speed and ``L``
             the scene's size.
         damping_factor: multiplier of the derived damping. Default 4: at 1 the slowest mode of the
-            scene stays under-damped and the pancreas error swings by ~0.5 mm over ~600 steps after the
-            residual has settled; 4 removes the swing and converges to a 0.3 mm lower error (measured,
-            benchmarks/README.md); 8 is no better.
+            scene stays under-damped (docs/decisions/2026-12-03-solver-defaults.md).
         damping_rule: ``"adaptive"``: critical damping of the mode the body is moving in, measured every step
             from the motion itself (adaptive dynamic relaxation: the Rayleigh quotient of the stiffness along the
             particles' velocities, :func:`warpmpm.kernels.stiffness_rayleigh`), within ``damping_bounds``; the
             derived ``damping_per_s`` is the first step's value and the bounds' unit. It brings the whole body to
-            rest 2.5-8x sooner than the fixed factor 4 (FEM blocks: 400-1,500 steps against 1,600-12,100;
-            benchmarks/README.md). ``"fixed"``: ``damping_per_s`` throughout. ``"auto"`` (default): adaptive
+            rest 2.5-8x sooner than the fixed factor 4. ``"fixed"``: ``damping_per_s`` throughout. ``"auto"`` (default): adaptive
             when a frame waits for the body to settle (``ConvergenceConfig.wait_settled``), fixed when it stops on
-            the driven slice alone: there the heavy fixed damping makes the body lag less behind the slice at
-            the stop (phantom, paper protocol: 3.0 mm against 3.5-3.7 adaptive; contact protocol within 0.1 mm).
+            the driven slice alone, where the fixed damping makes the body lag less behind the slice (docs/decisions/2026-12-03-solver-defaults.md).
             ``damping_per_s`` 0 means no damping under every rule.
         damping_bounds: lowest and highest adaptive damping, as multiples of the derived ``damping_per_s``.
         damping_memory_steps: steps over which the adaptive rule averages its Rayleigh quotient.
@@ -195,20 +166,19 @@ class SolverConfig:
             field). Default: the pancreas and the duodenum, whose head sits in the duodenal loop with shared
             vessels and ducts; without any bond nothing tethers the pancreas in this model (it has no
             retroperitoneum), and a frictionless pancreas pushed by a neighbour floats away as a free body
-            (measured: 13-31 mm on the real samples' contact scenarios). ``()``: every organ slides.
+            (docs/decisions/2026-12-03-solver-defaults.md). ``()``: every organ slides.
         cell_at_least_gap: never make a derived cell smaller than ``min_layers_per_cell`` times the largest gap
             between neighbouring particles, nor an explicit ``cell_size_mm`` smaller than the gap itself (default).
             Only a simulation that drives every particle (the ground truth) may turn it off: its layers are held by
             their targets, not by each other.
         min_layers_per_cell: with ``cell_at_least_gap``, how many particle layers a derived cell spans at least along
             every axis. Default :data:`MIN_LAYERS_PER_CELL` (1.5; one layer a cell leaves a mode the grid does not
-            see; 1.16 layers already do not, on the thick-slice block of benchmarks/README.md: 1.5 is a margin). The
-            ground truth's finer grid keeps 1.0 (the rule its protocols' tables were measured with).
+            see). The ground truth's finer grid keeps 1.0.
         method: how a frame's equilibrium is found. ``"explicit"`` (default): dynamic relaxation by explicit MLS-MPM
             steps under the PID drive, stopped by :class:`warpmpm.driving.ConvergenceConfig` (the paper's method).
             ``"quasistatic"``: Newton iterations with a matrix-free conjugate-gradient solve on the same grid
             (:mod:`warpmpm.quasistatic`): the settled equilibrium directly, in a fraction of the time the explicit
-            solver needs to wait for it (benchmarks/README.md); sticky contact only. ``"auto"``: the quasi-static
+            solver needs to wait for it; sticky contact only. ``"auto"``: the quasi-static
             solve first, for at most ``QuasiStaticConfig.auto_newton_iterations``; a frame it has not settled by then
             goes on with explicit steps from there (the result's ``method`` says which finished it). The tracker's
             default, where a predicted frame starts in equilibrium; sticky contact only.
@@ -222,22 +192,19 @@ class SolverConfig:
             the contact is sticky; ``"on"``: also when a frame stops on the driven slice alone (sticky contact only);
             ``"off"``: never. The coarse space: 25 mm cubes of each organ (``rigid_mode_aggregate_mm``); it starts once
             the driven slice has arrived, and a guard switches it off where it grows unstable (``DriveResult.acceleration``).
-            Measured (benchmarks/README.md, "Rigid-mode acceleration"): the default phantom settles in 1,700 steps
-            (1,100 with affine cube motions, ``rigid_mode_basis``) instead of not within 8,000; a stiff block hanging on
-            the pancreas block ends 3 % from the FEM instead of 50 %.
+            The default phantom settles in 1,700 steps instead of not within 8,000 (docs/decisions/2026-12-03-solver-defaults.md).
         rigid_mode_aggregate_mm: edge (mm) of the cubes each organ is cut into for the rigid-mode acceleration; None:
             whole organs. Default :data:`RIGID_MODE_AGGREGATE_MM` (smaller cubes: fewer steps, a longer set-up per frame
             and more work a step).
         rigid_mode_basis: the motions of each cube in that coarse space: ``"rigid"`` (6: translations and rotations)
             or ``"affine"`` (12: also stretches and shears, so the soft tissue between cubes can shear in the coarse
-            space: fewer steps, more work a step). Default :data:`RIGID_MODE_BASIS` (its comment has the measurement).
+            space: fewer steps, more work a step). Default :data:`RIGID_MODE_BASIS` (docs/decisions/2026-12-03-solver-defaults.md).
         cpu_threads: on the CPU, threads an explicit step splits its particle and grid kernels over, and the
             quasi-static solver its particle kernels
             (:mod:`warpmpm.parallel`: Warp runs each CPU launch on one core, and launches over disjoint
             particle ranges from several threads run at once; each thread scatters into a grid copy of its
             own). None (default): the environment variable ``WARPMPM_CPU_THREADS`` when set, else every core
-            this process may use, at most 2, the most measured (benchmarks/README.md: a step 1.8x faster on
-            two threads of the 2-core machine); 1: one launch per kernel, the single-core path. Ignored on CUDA and inside a graph capture. The answers agree with one thread
+            this process may use, at most 2 (docs/decisions/2026-12-03-solver-defaults.md); 1: one launch per kernel, the single-core path. Ignored on CUDA and inside a graph capture. The answers agree with one thread
             to float32 rounding (the grid's sums are added in another order), not bit for bit.
     """
 
@@ -544,12 +511,7 @@ class MPMSolver:
         self.threads = len(self._ranges)
         self._node_ranges = parallel.split(shape[0], self.threads)
         #: the grid update visits only the blocks of nodes that hold mass (:func:`warpmpm.kernels.grid_update_blocks`;
-        #: sticky contact on the CPU): P2G stamps the blocks of ``kernels.BLOCK``^3 nodes it scatters into with the
-        #: step's number. On CUDA every node has a thread of its own and the dense update is kept. By default only on one
-        #: thread: split over two, the threads' stamps share cache lines in P2G and the block update gains nothing, and
-        #: the dense update was the faster step (measured, same process: default phantom 11.05 against 11.49 ms,
-        #: 97k-particle cube 29.5 against 32.3 ms; on one thread the sparse one on the phantom, 18.6 against 19.8 ms, and
-        #: about the same on the cube, 51.7 against 50.5)
+        #: sticky contact on the CPU; one thread only: on two the dense update is faster, docs/decisions/2026-12-03-solver-defaults.md)
         self._sparse_capable = not self.fields and not str(d).startswith("cuda")
         self._sparse_update = self._sparse_capable and self.threads == 1
         blocks = tuple(-(-n // kernels.BLOCK) for n in shape) if self._sparse_capable else (1, 1, 1)
@@ -563,8 +525,7 @@ class MPMSolver:
             self.grid_mv = wp.zeros(copies, dtype=wp.vec3, device=d)
         else:
             #: sticky contact: each node's momentum (x, y, z, kg m/s) and mass (w, kg) side by side, so P2G adds both with
-            #: one address (measured: P2G 35.3 -> 27.6 ms on the paper-resolution phantom, one thread, against a
-            #: float and a vec3 array)
+            #: one address
             self.grid_mm = wp.zeros(copies, dtype=wp.vec4, device=d)
         #: the nodes' velocities (m/s) in x, y, z (w unused: 16-byte nodes, one aligned load each in G2P)
         self.grid_v = wp.zeros(stacked, dtype=wp.vec4, device=d)
@@ -666,7 +627,6 @@ class MPMSolver:
             self._damping_dt = dt
         damping = self.damping
         cfg = m.config
-        nx = m.grid_shape[0]
         parts = 1 if self.threads == 1 or wp.get_device(d).is_capturing else self.threads
         if parts == 1:
             self._p2g_part(0, state_in.x, state_in.v, state_in.C, state_in.F, force, [m.mass, m.vol0, m.mu, m.lam, m.field], dt)
@@ -701,8 +661,8 @@ class MPMSolver:
     def _p2g_part(self, k, x, v, C, F, force, per_particle, dt):
         """P2G of thread ``k``'s particles (the arrays cut to its range; whole for one thread) into grid copy ``k``."""
         m = self.model
-        mass, vol0, mu, lam, field = per_particle
         nx = m.grid_shape[0]
+        mass, vol0, mu, lam, field = per_particle
         if self.fields:
             wp.launch(kernels.p2g_fields, x.shape[0], [x, v, C, F, force, mass, vol0, mu, lam, field, nx, self._dx, dt,
                                                        k * nx * m.n_fields, self.grid_m, self.grid_mv, self.grid_g], device=m.device)

@@ -83,7 +83,7 @@ class TrackerConfig:
     still caps a frame."""
     solver: SolverConfig = field(default_factory=lambda: SolverConfig(method="auto"))
     """The MPM solver's settings. Default ``method="auto"``: a predicted frame starts in equilibrium, which one
-    Newton iteration confirms where the explicit rule needs its 100-step window (benchmarks/README.md); a frame
+    Newton iteration confirms where the explicit rule needs its 100-step window (docs/performance.md); a frame
     the Newton iterations do not settle goes on explicitly."""
     margin_mm: float = 40.0
     """Room around the organs for the motion of a whole series (the grid is built once)."""
