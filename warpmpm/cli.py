@@ -100,58 +100,62 @@ def _task_options() -> argparse.ArgumentParser:
 def _add_run_options(p: argparse.ArgumentParser) -> None:
     from .registration import BACKENDS
 
-    p.add_argument("--phantom-seed", type=int, default=0, help="seed of the phantom (and of the GT perturbations)")
-    p.add_argument("--truth-field", default=None,
+    t = p.add_argument_group("the truth of the run (the seed's experiment)")
+    t.add_argument("--phantom-seed", type=int, default=0, help="seed of the phantom (and of the GT perturbations)")
+    t.add_argument("--truth-field", default=None,
                    help="the truth as a displacement field on the planning grid (mm, world LPS, the displacement of the tissue at "
                    "each planning voxel): a frame of `warpmpm make-truth`, or your own (e.g. registered from a 4D-CT/MRI)")
-    p.add_argument("--organs", default="psdl", help="organ combination: p, ps, pd, pl, psd, psl, pdl, psdl")
-    p.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); "
+    t.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (under contact: the scenario number)")
+    t.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
+    t.add_argument("--literal-angles", action="store_true", help="read the paper's r, g literally as r/2pi radians")
+    t.add_argument("--gt-wait-settled", action="store_true",
+                   help="contact protocol: simulate the ground truth until its whole body has settled (an elastic equilibrium; slow)")
+    t.add_argument("--gt-contact", default=None, choices=["sticky", "sliding"], help="contact in the ground truth (default: --contact)")
+    d = p.add_argument_group("what drives the estimate")
+    d.add_argument("--organs", default="psdl", help="organ combination: p, ps, pd, pl, psd, psl, pdl, psdl")
+    d.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); "
                    "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
                    "'auto:asc': psdl, that axial slice plus the best sagittal and/or coronal slice; default: mid-pancreas axial")
-    p.add_argument("--deformation", type=int, default=1, help="paper deformation type 1..8 (under contact: the scenario number)")
-    p.add_argument("--targets", default=_experiment_default("targets"), choices=["affine", "registration-demons", "registration",
+    d.add_argument("--targets", default=_experiment_default("targets"), choices=["affine", "registration-demons", "registration",
                                                                                    "gt", "gt-inplane", "registration-affine",
                                                                                    "registration-bspline"],
                    help="slice motion: an affine fitted to the truth on each slice (the seed's protocol; default %(default)s), "
                    "organ-aware registration of the captured slices refined organ by organ by demons fields (what images give), "
                    "the organ-aware affines alone, the truth's 3D positions (upper bound), its in-plane part (the ceiling of 2D "
                    "registration), one registered affine per slice, or a registered B-spline field")
-    p.add_argument("--registration", default=_experiment_default("registration"), choices=list(BACKENDS),
+    d.add_argument("--registration", default=_experiment_default("registration"), choices=list(BACKENDS),
                    help="the slice registration's optimiser (registration targets): ITK's gradient descent or Gauss-Newton, "
                    "the same correlation metric")
-    p.add_argument("--no-plane-check", action="store_true",
+    d.add_argument("--drive", default=_experiment_default("drive"), choices=["inplane", "pinned"],
+                   help="inplane: a slice drives only its in-plane components; pinned: the through-plane coordinate too")
+    d.add_argument("--no-plane-check", action="store_true",
                    help="drive every plane's registered motion, unchecked (default: each plane's motion of each organ is checked "
                    "against the captured planes first and dropped, with a warning, when it makes them match worse)")
-    p.add_argument("--registration-passes", type=int, default=_experiment_default("registration_passes"),
+    o = p.add_argument_group("output")
+    o.add_argument("--no-volume-registration", action="store_true", help="skip the (slow) 3D registration baseline")
+    o.add_argument("--json", help="write the results as JSON to this file")
+    o.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
+    o.add_argument("--rrd-every", type=int, default=20, help="log particle positions every this many steps (scalars every step)")
+    o.add_argument("--quiet", action="store_true", help="no progress lines on stderr (the model's size, the GT, the estimate)")
+    a = p.add_argument_group("advanced: solver variants, measured and not the default (docs/decisions/)")
+    a.add_argument("--registration-passes", type=int, default=_experiment_default("registration_passes"),
                    help="with several driving planes: register them this many times, each later pass against the planning image "
                    "moved by the last pass's combined motion (kept while the planes match better); default 1")
-    p.add_argument("--drive", default=_experiment_default("drive"), choices=["inplane", "pinned"],
-                   help="inplane: a slice drives only its in-plane components; pinned: the through-plane coordinate too")
-    p.add_argument("--no-perturb", action="store_true", help="simulate the GT with the estimator's nominal materials (debugging)")
-    p.add_argument("--literal-angles", action="store_true", help="read the paper's r, g literally as r/2pi radians")
-    p.add_argument("--max-steps", type=int, default=_experiment_default("max_steps"), help="steps before the estimate stops "
+    a.add_argument("--max-steps", type=int, default=_experiment_default("max_steps"), help="steps before the estimate stops "
                    "(default %(default)s)")
-    p.add_argument("--wait-settled", action="store_true",
+    a.add_argument("--wait-settled", action="store_true",
                    help="the settled mode: run each estimate on until the whole model has settled, not only the driven slice, with "
                    "adaptive (critical) damping and a PD drive (checked against the FEM reference; slower)")
-    p.add_argument("--solver", default=_experiment_default("solver").method, choices=["explicit", "quasistatic", "auto"],
+    a.add_argument("--solver", default=_experiment_default("solver").method, choices=["explicit", "quasistatic", "auto"],
                    help="how the estimate's equilibrium is found: explicit MPM steps stopped by the paper's rule (default), "
                    "Newton / conjugate-gradient iterations to the settled equilibrium, or auto: those iterations first and "
                    "explicit steps from where they stopped when the frame has not settled after a few (sticky contact only; "
                    "the ground truth stays explicit)")
-    p.add_argument("--gt-wait-settled", action="store_true",
-                   help="contact protocol: simulate the ground truth until its whole body has settled (an elastic equilibrium; slow)")
-    p.add_argument("--contact", default="sticky", choices=["sticky", "sliding"],
+    a.add_argument("--contact", default="sticky", choices=["sticky", "sliding"],
                    help="contact between organs in the estimate: one shared grid velocity (sticky) or a field per organ "
                    "that lets touching organs slide and separate (sliding)")
-    p.add_argument("--gt-contact", default=None, choices=["sticky", "sliding"], help="contact in the ground truth (default: --contact)")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads a step or a Newton iteration is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
-    p.add_argument("--friction", type=float, default=0.0, help="Coulomb friction of sliding contact (0: frictionless)")
-    p.add_argument("--no-volume-registration", action="store_true", help="skip the (slow) 3D registration baseline")
-    p.add_argument("--rrd", help="write a Rerun recording of the run to this .rrd file")
-    p.add_argument("--rrd-every", type=int, default=20, help="log particle positions every this many steps (scalars every step)")
-    p.add_argument("--json", help="write the results as JSON to this file")
-    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr (the model's size, the GT, the estimate)")
+    a.add_argument("--friction", type=float, default=0.0, help="Coulomb friction of sliding contact (0: frictionless)")
+    a.add_argument("--threads", type=int, default=None, help="CPU threads a step or a Newton iteration is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -211,54 +215,57 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Track a cine series (a folder of 2D NIfTI/MHA/DICOM frames placed in 3D) from a planning "
                        "image and its organ labels: per frame the estimated label map, optionally the displacement field, "
                        "and a row of track.csv in --out.")
-    k.add_argument("--image", required=True, help="planning image (a file, or a DICOM series folder)")
-    k.add_argument("--labels", default=None, help="organ label map on the planning image's grid (or give --rtstruct)")
-    k.add_argument("--rtstruct", default=None, help="the planning RT Structure Set (with --image a DICOM series folder): the "
+    ki = k.add_argument_group("inputs")
+    ki.add_argument("--image", required=True, help="planning image (a file, or a DICOM series folder)")
+    ki.add_argument("--labels", default=None, help="organ label map on the planning image's grid (or give --rtstruct)")
+    ki.add_argument("--rtstruct", default=None, help="the planning RT Structure Set (with --image a DICOM series folder): the "
                    "organs found by name (Pancreas, Stomach, Duodenum, Kidney_L and common variants) instead of --labels")
-    k.add_argument("--structure", action="append", default=[], metavar="ORGAN=NAME",
+    ki.add_argument("--structure", action="append", default=[], metavar="ORGAN=NAME",
                    help="which structure is an organ (pancreas, stomach, duodenum, left_kidney), e.g. --structure pancreas=GTV_Panc; "
                    "repeat for each organ whose name is not a common one")
-    k.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"])
-    k.add_argument("--cine", required=True, help="folder of cine frames: Elekta Unity .bin, DICOM (Unity, MRIdian), or NIfTI/MHA/NRRD "
+    ki.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"])
+    ki.add_argument("--cine", required=True, help="folder of cine frames: Elekta Unity .bin, DICOM (Unity, MRIdian), or NIfTI/MHA/NRRD "
                    "frames one voxel thick")
-    k.add_argument("--trackrad-centre", default=None, metavar="X,Y,Z",
+    ki.add_argument("--trackrad-centre", default=None, metavar="X,Y,Z",
                    help="a TrackRAD case as --cine keeps no patient position: the point (mm, LPS, in the planning scan) the "
                    "sagittal frames are centred on (write --trackrad-centre=X,Y,Z when X is negative)")
-    k.add_argument("--dicom", action="store_true", help="also write, per frame, OUT/dicom/frame_NNNN/RS.dcm (the estimated organs, an "
+    ko = k.add_argument_group("outputs")
+    ko.add_argument("--out", required=True, help="output folder (created)")
+    ko.add_argument("--overwrite", action="store_true", help="replace an --out folder that already holds a track (whole)")
+    ko.add_argument("--displacement", action="store_true", help="also write each frame's 3D displacement field")
+    ko.add_argument("--dicom", action="store_true", help="also write, per frame, OUT/dicom/frame_NNNN/RS.dcm (the estimated organs, an "
                    "RT Structure Set) and REG.dcm (the displacement, a Deformable Spatial Registration), referring to the planning "
                    "series (a planning image given as NIfTI/MHA/NRRD is written once as OUT/dicom/planning/)")
-    k.add_argument("--modality", default="MR", choices=["MR", "CT"], help="modality of OUT/dicom/planning/ when --dicom writes it")
-    k.add_argument("--dose", default=None, help="the planned dose: an RT Dose (.dcm) or a dose image in Gy on any grid; each organ's "
+    ko.add_argument("--modality", default="MR", choices=["MR", "CT"], help="modality of OUT/dicom/planning/ when --dicom writes it")
+    ko.add_argument("--dose", default=None, help="the planned dose: an RT Dose (.dcm) or a dose image in Gy on any grid; each organ's "
                    "dose through each frame's estimated motion is accumulated over the series: OUT/dose/dvh.csv, dose_metrics.csv "
                    "(pancreas D95/D98, duodenum and stomach D0.5cc/D1cc/Dmax, ...), dvh.png, accumulated_dose.nii.gz")
-    k.add_argument("--beam-on", default=None, metavar="CSV", help="with --dose: a CSV with columns frame,beam_on_s (the beam-on time "
+    ko.add_argument("--beam-on", default=None, metavar="CSV", help="with --dose: a CSV with columns frame,beam_on_s (the beam-on time "
                    "of each frame, s) to weight the frames by; default: equal weights")
-    k.add_argument("--out", required=True, help="output folder (created)")
-    k.add_argument("--organs", default="psdl")
-    k.add_argument("--particle-step", type=int, default=1)
-    k.add_argument("--max-steps", type=int, default=_tracker_default("max_steps"),
-                   help="steps per frame before it is reported not converged (default %(default)s)")
-    k.add_argument("--displacement", action="store_true", help="also write each frame's 3D displacement field")
-    k.add_argument("--wait-settled", action="store_true",
-                   help="the settled mode: run each estimate on until the whole model has settled, not only the driven slice, with "
-                   "adaptive (critical) damping and a PD drive (checked against the FEM reference; slower)")
-    k.add_argument("--solver", default=_tracker_default("solver").method, choices=["auto", "explicit", "quasistatic"],
+    ko.add_argument("--rrd", default=None, help="also write a Rerun recording: the cine frames in their 3D planes beside the estimate")
+    ka = k.add_argument_group("advanced: the model, the solver and the registration (defaults measured: docs/decisions/)")
+    ka.add_argument("--organs", default="psdl")
+    ka.add_argument("--particle-step", type=int, default=1)
+    ka.add_argument("--solver", default=_tracker_default("solver").method, choices=["auto", "explicit", "quasistatic"],
                    help="how each frame's equilibrium is found: auto (default): Newton / conjugate-gradient iterations to the "
                    "settled equilibrium, going on with explicit MPM steps when a frame has not settled after a few; explicit "
                    "MPM steps alone; or the Newton iterations alone")
-    k.add_argument("--registration", default=_tracker_default("registration"), choices=list(BACKENDS),
+    ka.add_argument("--max-steps", type=int, default=_tracker_default("max_steps"),
+                   help="steps per frame before it is reported not converged (default %(default)s)")
+    ka.add_argument("--wait-settled", action="store_true",
+                   help="the settled mode: run each estimate on until the whole model has settled, not only the driven slice, with "
+                   "adaptive (critical) damping and a PD drive (checked against the FEM reference; slower)")
+    ka.add_argument("--registration", default=_tracker_default("registration"), choices=list(BACKENDS),
                    help="the slice registration's optimiser: Gauss-Newton (default) or ITK's gradient descent (same correlation metric)")
-    k.add_argument("--linear-prior", type=float, default=_tracker_default("registration_linear_prior"),
+    ka.add_argument("--linear-prior", type=float, default=_tracker_default("registration_linear_prior"),
                    help="Gauss-Newton registration: how strongly a frame's scale/shear/rotation is kept near the identity (whole "
                    "slice) or the whole slice's (each organ); 0: none")
-    k.add_argument("--reference", default=_tracker_default("reference"), choices=["estimate", "previous-frame"],
+    ka.add_argument("--reference", default=_tracker_default("reference"), choices=["estimate", "previous-frame"],
                    help="what each frame is registered against: the current estimate rendered on the frame's plane (default; "
                    "registration errors do not add up) or the plane's last frame (the first: the planning image)")
-    k.add_argument("--threads", type=int, default=None, help="CPU threads a step or a Newton iteration is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
-    k.add_argument("--no-predict", action="store_true",
+    ka.add_argument("--no-predict", action="store_true",
                    help="start each frame from the last estimate, not from the frame's per-organ motion applied to every particle")
-    k.add_argument("--rrd", default=None, help="also write a Rerun recording: the cine frames in their 3D planes beside the estimate")
-    k.add_argument("--overwrite", action="store_true", help="replace an --out folder that already holds a track (whole)")
+    ka.add_argument("--threads", type=int, default=None, help="CPU threads a step or a Newton iteration is split over (default: WARPMPM_CPU_THREADS, else the cores, at most 2; 1: one core); ignored on CUDA")
 
     c = sub.add_parser("make-cine", help="a synthetic cine series with its 3D truth (for tests and benchmarks)",
                        description="Breathing plus a contact push, each frame's truth simulated with perturbed materials, frames "

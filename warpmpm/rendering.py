@@ -59,8 +59,7 @@ def backward_displacement(geometry: Geometry, planning_mm: np.ndarray, positions
     non-rigid motion (``benchmarks/rendering_speed.py``): within 8 mm of the particles, where the near fill weighs,
     the whole-volume field is within 0.016 mm of the fill on every voxel (0.09 mm within 40 mm; several mm only
     60 mm and more from every particle, where both fall back to the particles' mean displacement at slightly
-    different places; fourteenth session, before the blend of :func:`_normalise`); :func:`warp_volume` takes
-    0.56-0.64x the time.
+    different places); :func:`warp_volume` takes 0.56-0.64x the time (docs/performance.md).
 
     ``out_geometry``: the grid the field is returned on, a crop of ``geometry`` (default: ``geometry`` itself); the
     near fill is still that of all of ``geometry`` (its weights' peak too). When the crop cuts one axis only (a frame's
@@ -186,9 +185,8 @@ def _normalise(sm: np.ndarray, peak: float, u_range: np.ndarray, blend: bool = F
     particles' range (``u_range``: rows mean, least, largest, from :func:`scatter_displacements`), which a weighted mean with
     positive weights never leaves, and is the particles' mean displacement below :data:`FILL_FLOOR` of ``peak``.
     ``blend`` (the far fill, whose value is the field there): between :data:`FILL_FLOOR` and :data:`FILL_TRUST` the
-    two are blended, smoothly in log count. Before (fourteenth session) the fill switched to the mean at the floor: a
-    jump of up to 3.8 mm between neighbouring voxels some 60 mm and more from every particle; now the field changes
-    there no faster than near the organs (``tests/test_rendering.py``). The near fill needs no blend: it weighs at
+    two are blended, smoothly in log count (a switch to the mean at the floor jumped by up to 3.8 mm between
+    neighbouring voxels some 60 mm from every particle); the field changes there no faster than near the organs (``tests/test_rendering.py``). The near fill needs no blend: it weighs at
     most 4x its relative count (0.004 at the floor) against the far fill."""
     count = sm[..., 0]
     rel = count * (1.0 / max(peak, 1e-12))

@@ -94,10 +94,7 @@ NODE_GROUPS = 8
 #: the guard against an unstable coarse level: the coarse velocity change growing by more than ``GUARD_GROWTH`` a step
 #: for ``GUARD_STEPS`` steps in a row switches the correction off for the rest of the frame. A boosted mode swings at
 #: ``omega_t`` (``omega_t dt`` 0.04 on the default phantom), so its force changes by a few % a step; 20 % a step for 6
-#: steps is an instability. Measured once: the paper protocol's 12 mm slice motion, settled mode, default phantom, where
-#: the coarse level grew 1.3-2x a step from step ~390 (the answer had been stable without it for 3,000 steps); the
-#: coarse matrices at that state were checked against finite differences of the nonlinear force (within 2 %), so the
-#: cause is a coupling outside the coarse space's own stiffness, not a wrong ``E`` (issue 17's notes).
+#: steps is an instability (the paper protocol's 12 mm slice motion on the default phantom: docs/decisions/2026-12-03-solver-defaults.md).
 GUARD_GROWTH = 1.2
 GUARD_STEPS = 6
 

@@ -105,9 +105,9 @@ class TrackerConfig:
     """What a frame is registered against. ``"estimate"`` (default): the current estimate rendered on the frame's
     plane (:func:`warpmpm.rendering.render_plane`), so the registration measures what the estimate still misses
     and its errors do not add up frame after frame; through-plane motion another plane has measured is in the
-    reference. ``"previous-frame"``: the plane's last frame (the first: the planning image), the motion since then
-    (the tracker before the eighth session). Measured on five MR cine series (docs/results.md): 9.6 % lower pancreas
-    error on the mean, lower on each series, for ~20 ms a frame of rendering."""
+    reference. ``"previous-frame"``: the plane's last frame (the first: the planning image), the motion since then.
+    The estimate is 11.6 % lower on the mean of five MR cine series, lower on each, for ~30 ms a frame of rendering
+    (docs/results.md)."""
     reach_mm: float = 15.0
     """How far (mm) a particle may start from a plane and still come onto it during the series: those within
     half the slice thickness plus this of a plane at planning are the candidates checked every frame."""
