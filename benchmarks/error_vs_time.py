@@ -33,7 +33,7 @@ from warpmpm.targets import affine_targets
 from warpmpm.groundtruth import paper_affine, paper_ground_truth
 from warpmpm.metrics import evaluate
 from warpmpm.experiment import CaseConfig, prepare_case
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 
 
 # The settings before issue 9's tuning (CFL 0.3, damping factor 1, the paper's TH_D 4): kept as a

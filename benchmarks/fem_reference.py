@@ -11,12 +11,12 @@ parameters, the driven slice a Dirichlet condition) is the reference; the figure
 difference of the non-driven particles' displacement, at the default stopping rule, once the whole
 body has settled (``wait_settled``: the settled mode, adaptive damping and a PD drive; and each of its two
 changes alone against the fixed damping and PID drive it replaced), and run on to a fixed 6,000 steps (does
-the answer drift?). ``--grid-shift``: the soft block moved by 0, 1/4 and 1/2 cell against the grid. ``--quasistatic``: the settled mode's explicit solver beside the quasi-static one (:mod:`warpmpm.quasistatic`), same
+the answer drift?). ``--grid-shift``: the soft block moved by 0, 1/4 and 1/2 cell against the grid. ``--quasistatic``: the settled mode's explicit solver beside the quasi-static one (:mod:`warpmpm.solvers.quasistatic`), same
 run, with the time ratio. ``--fem-convergence``: how far the reference is from its own continuum limit: the FEM on
 the particles' mesh against the FEM on meshes 2 and 3 times finer (``--levels``), the settled MPM against each, and
 with three levels the observed order of convergence and every answer against the Richardson-extrapolated
 continuum (a difference below the reference's own cannot be resolved by it). ``--acceleration``: the settled mode
-with and without its rigid-mode acceleration (:mod:`warpmpm.rigid_modes`), on the three blocks and two more where a
+with and without its rigid-mode acceleration (:mod:`warpmpm.solvers.rigid_modes`), on the three blocks and two more where a
 stiff block (duodenum, kidney) hangs on the pancreas block, 3 layers above the driven slice, nothing driving it. ``--ppc-sweep``: the scaled soft block, settled (the default settled mode), for 1, 2, 4
 and 8 particles per cell, with the error by distance from the slice (in-plane and through-plane parts).
 """
@@ -36,7 +36,7 @@ from warpmpm.driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator
 from warpmpm.fem import fem_displacement_mm
 from warpmpm.scenes import block_model, inclusion_model, merge_models
 from warpmpm.slices import DrivingSlice, InPlaneAffine
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 from warpmpm.targets import affine_targets
 
 A = math.radians(3.0)

@@ -10,7 +10,7 @@ taichi``). Run::
     python benchmarks/solver_step.py --sizes 10000 --device cpu --steps 20
 
 Prints a table (ms per step, M particle-steps/s, Taichi/warpmpm ratio, bytes per particle). On the CPU warpmpm
-is timed twice in the same run, on one thread and split over ``--threads`` (default 2: warpmpm.parallel); the
+is timed twice in the same run, on one thread and split over ``--threads`` (default 2: warpmpm.solvers.parallel); the
 ratio to Taichi (which uses every core) is for the split step, and the split step's gain over one thread is
 its own column.
 """
@@ -29,7 +29,7 @@ from warpmpm.experiment import raw_numbers as raw
 import warp as wp
 
 from warpmpm.scenes import block_model, merge_models
-from warpmpm.solver import MPMModel, MPMSolver, SolverConfig
+from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
 
 
 def scene(n_target: int):

@@ -21,7 +21,7 @@ import warp as wp
 from warpmpm import InPlaneAffine, build_model, make_phantom
 from warpmpm.driving import SliceDrivenEstimator
 from warpmpm.slices import DrivingSlice, in_plane_axes
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 from warpmpm.targets import affine_targets
 
 

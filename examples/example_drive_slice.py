@@ -18,7 +18,7 @@ from warpmpm import InPlaneAffine, build_model, make_phantom
 from warpmpm.driving import SliceDrivenEstimator
 from warpmpm.groundtruth import paper_affine
 from warpmpm.slices import DrivingSlice, in_plane_axes
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 from warpmpm.targets import affine_targets
 
 

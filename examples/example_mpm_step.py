@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from warpmpm.scenes import block_model, merge_models
-from warpmpm.solver import MPMModel, MPMSolver, SolverConfig
+from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
 
 
 class Example:

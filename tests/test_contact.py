@@ -6,7 +6,7 @@ import warp as wp
 
 from warpmpm.errors import InputError
 from warpmpm.scenes import block_model, merge_models
-from warpmpm.solver import MPMModel, MPMSolver, SolverConfig
+from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
 
 
 def two_stacked_blocks():

@@ -27,8 +27,9 @@ def kernel_modules() -> dict[str, list[str]]:
 
 def test_the_kernel_modules_are_found():
     mods = kernel_modules()
-    assert {"warpmpm.kernels", "warpmpm.driving", "warpmpm.quasistatic", "warpmpm.rigid_modes", "warpmpm.solvers.completion_kernels"} <= set(mods)
-    assert {"p2g", "g2p", "grid_update"} <= set(mods["warpmpm.kernels"])
+    assert {"warpmpm.solvers.explicit_kernels", "warpmpm.solvers.drive", "warpmpm.solvers.quasistatic_kernels", "warpmpm.solvers.rigid_modes_kernels",
+            "warpmpm.solvers.completion_kernels"} <= set(mods)
+    assert {"p2g", "g2p", "grid_update"} <= set(mods["warpmpm.solvers.explicit_kernels"])
 
 
 @pytest.mark.parametrize("arch", [80, 90])

@@ -11,7 +11,7 @@ from warpmpm.targets import affine_targets
 from warpmpm.groundtruth import paper_affine
 from warpmpm.images import InputError
 from warpmpm.scenes import block_model
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 
 CPU = SolverConfig(device="cpu")
 
@@ -168,7 +168,7 @@ def test_captured_graph_replays_the_eager_steps_exactly(tiny_model, damping):
     eager, r1 = _frame(m, sl, tg, solver, sync_every=10)
     graph, r2 = _frame(m, sl, tg, solver, sync_every=10, use_graph=True)
     assert eager.solver.adaptive == (damping == "adaptive")
-    assert graph._graph is not None and r1.steps == r2.steps == 120
+    assert graph.relaxation._graph is not None and r1.steps == r2.steps == 120
     np.testing.assert_array_equal(r1.positions_mm, r2.positions_mm)
     np.testing.assert_array_equal(r1.residual_history, r2.residual_history)
     # a second frame replays the same graph with new targets
@@ -210,7 +210,7 @@ def test_the_integral_cannot_wind_up_on_targets_the_grid_cannot_reach():
                                convergence=ConvergenceConfig(th_v=1e-12, th_d=12, max_steps=3000))
     res = est.estimate(targets)
     assert res.final_rms_mm > 0.5  # the targets were not reached
-    action = est.gains.ki_per_s3 * np.linalg.norm(est._integral.numpy(), axis=1)
+    action = est.gains.ki_per_s3 * np.linalg.norm(est.relaxation._integral.numpy(), axis=1)
     assert action.max() <= est.gains.max_accel_m_s2 * (1 + 1e-4)
 
 

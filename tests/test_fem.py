@@ -10,7 +10,7 @@ from warpmpm.errors import InputError
 from warpmpm.fem import fem_displacement_mm
 from warpmpm.scenes import block_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 from warpmpm.targets import affine_targets
 
 

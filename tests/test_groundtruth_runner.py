@@ -16,7 +16,7 @@ from warpmpm.model import build_model
 from warpmpm.registration import register_volumes_affine
 from warpmpm.cli import run_main as main
 from warpmpm.slices import in_plane_axes
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 
@@ -178,7 +178,7 @@ def test_empty_slice_refused_before_any_simulation(tmp_path, capsys, monkeypatch
 
 
 def _maybe_diverge(i):
-    from warpmpm.solver import SimulationError
+    from warpmpm.errors import SimulationError
 
     if i == 1:
         raise SimulationError("non-finite value (NaN/Inf) at step 3")

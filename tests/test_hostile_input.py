@@ -21,7 +21,7 @@ from warpmpm.model import build_model
 from warpmpm.phantom import make_phantom
 from warpmpm.scenes import block_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine, parse_slices
-from warpmpm.solver import MPMModel, SolverConfig
+from warpmpm.solvers import MPMModel, SolverConfig
 from warpmpm.targets import affine_targets
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))

@@ -1,11 +1,12 @@
-"""Issue 19: one explicit step split over two CPU threads (warpmpm.parallel) computes the same physics as one."""
+"""Issue 19: one explicit step split over two CPU threads (warpmpm.solvers.parallel) computes the same physics as one."""
 
 import numpy as np
 import pytest
 
 from warpmpm.errors import InputError
 from warpmpm.scenes import block_model, merge_models
-from warpmpm.solver import MPMModel, MPMSolver, SimulationError, SolverConfig
+from warpmpm.errors import SimulationError
+from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
 
 
 def _scene():

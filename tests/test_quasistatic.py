@@ -10,7 +10,7 @@ from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
 from warpmpm.errors import InputError
 from warpmpm.scenes import block_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine
-from warpmpm.solver import QuasiStaticConfig, SolverConfig
+from warpmpm.solvers import QuasiStaticConfig, SolverConfig
 from warpmpm.targets import affine_targets
 
 from test_fem import A3, _block_scene

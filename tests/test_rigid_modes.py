@@ -1,4 +1,4 @@
-"""Issue 17: the rigid-mode acceleration of the settled mode (warpmpm.rigid_modes), checked against the FEM."""
+"""Issue 17: the rigid-mode acceleration of the settled mode (warpmpm.solvers.rigid_modes), checked against the FEM."""
 
 import math
 
@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warpmpm import quasistatic as qs
+from warpmpm.solvers import quasistatic as qs
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
 from warpmpm.errors import InputError
 from warpmpm.fem import fem_displacement_mm
-from warpmpm.rigid_modes import NODE_GROUPS, RigidModeAccelerator, _basis, aggregate_groups
+from warpmpm.solvers.rigid_modes import NODE_GROUPS, RigidModeAccelerator, _basis, aggregate_groups
 from warpmpm.scenes import inclusion_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 from warpmpm.targets import affine_targets
 
 A = math.radians(3.0)
@@ -144,8 +144,8 @@ def test_bad_acceleration_settings_are_refused(tiny_model):
 
 def test_the_guard_switches_an_exponentially_growing_coarse_level_off_and_leaves_a_ringing_one_on():
     """A boosted mode swings at the target frequency (a few % change a step); growth by more than GUARD_GROWTH a step for
-    GUARD_STEPS steps in a row is an instability (the paper protocol's case in warpmpm.rigid_modes)."""
-    from warpmpm.rigid_modes import GUARD_GROWTH, GUARD_STEPS, coarse_guard
+    GUARD_STEPS steps in a row is an instability (the paper protocol's case in warpmpm.solvers.rigid_modes)."""
+    from warpmpm.solvers.rigid_modes import GUARD_GROWTH, GUARD_STEPS, coarse_guard
 
     def run(series):
         guard = wp.array(np.array([0.0, 0.0, 1.0, -1.0, 0.0]), dtype=float, device="cpu")

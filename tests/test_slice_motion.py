@@ -8,7 +8,7 @@ from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
 from warpmpm.registration import register_slice_organs
 from warpmpm.scenes import block_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine, in_plane_axes
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 from warpmpm.targets import affine_drive_targets, in_plane_truth_targets, plane_projector, slice_targets
 
 CPU = SolverConfig(device="cpu")

@@ -5,7 +5,8 @@ import pytest
 
 from warpmpm.images import InputError
 from warpmpm.scenes import block_model, merge_models
-from warpmpm.solver import MPMModel, MPMSolver, SimulationError, SolverConfig
+from warpmpm.errors import SimulationError
+from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
 
 CPU = dict(device="cpu")
 
@@ -232,7 +233,7 @@ def test_nan_and_leaving_grid_are_reported():
 def test_polar_rotation_equals_svd_rotation():
     import warp as wp
 
-    from warpmpm import kernels
+    from warpmpm.solvers import explicit_kernels as kernels
 
     @wp.kernel
     def rot(F: wp.array(dtype=wp.mat33), R: wp.array(dtype=wp.mat33)):
@@ -291,7 +292,7 @@ def test_an_anisotropic_lattice_gets_more_than_one_layer_a_cell_and_the_fem_answ
     from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
     from warpmpm.fem import fem_displacement_mm
     from warpmpm.slices import DrivingSlice, InPlaneAffine
-    from warpmpm.solver import MIN_LAYERS_PER_CELL
+    from warpmpm.solvers import MIN_LAYERS_PER_CELL
     from warpmpm.targets import affine_targets
 
     m = block_model((16, 16, 9), (2.0, 2.0, 4.0), "pancreas")

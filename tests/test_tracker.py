@@ -78,7 +78,7 @@ def test_track_without_the_truth_and_evaluate_against_it(series, tmp_path, capsy
 
 def test_a_frame_equal_to_the_planning_slice_gives_no_motion(tmp_path, tiny_case):
     from warpmpm.cine import read_cine
-    from warpmpm.solver import SolverConfig
+    from warpmpm.solvers import SolverConfig
     from warpmpm.tracker import Tracker, TrackerConfig
 
     pan = np.nonzero(tiny_case.organ_mask("pancreas"))
@@ -104,7 +104,7 @@ def test_bad_cine_folders_are_named(tmp_path, tiny_case):
     with pytest.raises(InputError, match="b.nii.gz is .* one voxel thick"):
         read_cine(str(tmp_path))
     os.remove(tmp_path / "b.nii.gz")
-    from warpmpm.solver import SolverConfig
+    from warpmpm.solvers import SolverConfig
     from warpmpm.tracker import Tracker, TrackerConfig
 
     os.remove(tmp_path / "a.nii.gz")
@@ -188,7 +188,7 @@ def test_dicom_and_nifti_frames_give_the_same_track(tmp_path):
 
 def test_the_driven_particles_follow_the_estimate_through_the_plane(tmp_path, tiny_case):
     """Organs breathe through a cine plane: a frame drives the particles on its plane *now*, not at planning."""
-    from warpmpm.solver import SolverConfig
+    from warpmpm.solvers import SolverConfig
     from warpmpm.tracker import Tracker, TrackerConfig
 
     pan = np.nonzero(tiny_case.organ_mask("pancreas"))
@@ -212,7 +212,7 @@ def test_a_translated_frame_moves_the_whole_model_with_it(tmp_path, tiny_case, p
     """The frame is the planning's own sagittal slice moved 4 mm in plane: the organs translate. With the
     prediction (default) every particle starts the frame moved by its organ's registered motion, so the
     particles far from the plane follow at once; from the last state alone they lag the slice."""
-    from warpmpm.solver import SolverConfig
+    from warpmpm.solvers import SolverConfig
     from warpmpm.tracker import Tracker, TrackerConfig
 
     pan = np.nonzero(tiny_case.organ_mask("pancreas"))
@@ -247,7 +247,7 @@ def test_interleaved_planes_do_not_count_the_shared_motion_twice(tmp_path, tiny_
     frame's registration (its plane's first: against the planning image) measures 3 mm since planning, applied
     to where the pancreas was then; against the estimate, the rendered reference already shows the 3 mm and the
     registration measures none (rendering the planning state instead would count it twice)."""
-    from warpmpm.solver import SolverConfig
+    from warpmpm.solvers import SolverConfig
     from warpmpm.tracker import Tracker, TrackerConfig
 
     pan = np.nonzero(tiny_case.organ_mask("pancreas"))  # numpy order (z, y, x)

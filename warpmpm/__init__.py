@@ -1,7 +1,7 @@
 """warpmpm: 2D slice-driven multi-organ MPM estimation of 3D pancreas motion (NVIDIA Warp).
 
 Data flows one way: images and labels (:mod:`warpmpm.images`, :mod:`warpmpm.phantom`) -> particle
-model (:mod:`warpmpm.model`) -> solver (:mod:`warpmpm.kernels`, :mod:`warpmpm.solver`) <- driving
+model (:mod:`warpmpm.model`) -> solver (:mod:`warpmpm.solvers.explicit_kernels`, :mod:`warpmpm.solvers`) <- driving
 (:mod:`warpmpm.driving`) <- targets (:mod:`warpmpm.targets`) <- registration
 (:mod:`warpmpm.registration`), with the slice and its in-plane motion in :mod:`warpmpm.slices`; the completion
 solve of the whole abdomen in :mod:`warpmpm.solvers`, the anatomy it and the truths read in :mod:`warpmpm.anatomy`.

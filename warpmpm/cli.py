@@ -367,7 +367,7 @@ def _quiet(verbose: bool) -> None:
 def config_from_args(a):
     """The :class:`~warpmpm.experiment.config.CaseConfig` of ``warpmpm run``'s options (checked)."""
     from .experiment.config import CaseConfig
-    from .solver import SolverConfig
+    from .solvers import SolverConfig
 
     step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
     baselines = ("initial", "propagate", "rigid", "completion") + (() if a.no_volume_registration else ("volume_registration",))
@@ -605,7 +605,7 @@ def _dicom_writer(case, a, work, frames=()):
 
 def cmd_track(a) -> int:
     from .cine import read_cine
-    from .solver import SolverConfig
+    from .solvers import SolverConfig
     from .tracker import Tracker, TrackerConfig
 
     bad = sorted(set(a.organs) - set("psdl"))

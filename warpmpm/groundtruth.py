@@ -28,7 +28,7 @@ from .images import Case
 from .model import Material, ParticleModel
 from .rendering import particle_label_map, warp_volume  # noqa: F401  (particle_label_map: re-exported)
 from .slices import InPlaneAffine, in_plane_axes
-from .solver import SolverConfig
+from .solvers import SolverConfig
 
 __all__ = ["PAPER_DEFORMATIONS", "paper_affine", "perturb_materials", "GroundTruth", "GT_CFL", "gt_solver_config",
            "simulate_gt", "paper_ground_truth", "contact_targets", "contact_ground_truth", "warp_image"]
@@ -156,7 +156,7 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
     params["gt_settled"] = res.settled
     params["gt_body_motion_mm"] = res.body_motion_mm
     params["gt_reason"] = res.reason
-    params["gt_acceleration"] = res.acceleration  # whether the settled mode's coarse level ran (warpmpm.rigid_modes)
+    params["gt_acceleration"] = res.acceleration  # whether the settled mode's coarse level ran (warpmpm.solvers.rigid_modes)
     return params, res
 
 

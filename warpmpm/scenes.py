@@ -76,7 +76,7 @@ def inclusion_model(
     """A block of ``matrix`` with the voxels of ``box`` (``((i0, i1), (j0, j1), (k0, k1))``, half-open voxel ranges)
     made of ``inclusion``: one lattice, one particle per voxel (so the FEM reference can mesh it). With the box away
     from a driven slice it is a stiff body hanging on a soft one, the case that sets how fast a whole abdomen settles
-    (:mod:`warpmpm.rigid_modes`)."""
+    (:mod:`warpmpm.solvers.rigid_modes`)."""
     if matrix == inclusion:
         raise InputError("inclusion_model needs two different organs")
     base = block_model(shape, spacing_mm, matrix, materials=materials)

@@ -34,7 +34,7 @@ from .images import ORGANS, Case
 from .model import ParticleModel, build_model
 from .registration import BACKENDS, register_slice_organs, slice_metric
 from .rendering import particle_label_map, render_plane, scatter_displacements
-from .solver import SolverConfig
+from .solvers import SolverConfig
 
 __all__ = ["TRACK_FIELDS", "TrackerConfig", "TrackedFrame", "Tracker", "displacement_field"]
 
@@ -79,7 +79,7 @@ class TrackerConfig:
     """Also write each frame's 3D displacement field."""
     wait_settled: bool = False
     """The settled mode: every frame runs on until the whole model has settled, with adaptive damping and a PD
-    drive (:class:`~warpmpm.driving.ConvergenceConfig`, :class:`~warpmpm.solver.SolverConfig`); ``max_steps``
+    drive (:class:`~warpmpm.driving.ConvergenceConfig`, :class:`~warpmpm.solvers.config.SolverConfig`); ``max_steps``
     still caps a frame."""
     solver: SolverConfig = field(default_factory=lambda: SolverConfig(method="auto"))
     """The MPM solver's settings. Default ``method="auto"``: a predicted frame starts in equilibrium, which one

@@ -30,10 +30,10 @@ import warp as wp
 
 from warpmpm import InPlaneAffine, build_model, make_phantom
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
-from warpmpm.quasistatic import apply_stiffness, grid_view
-from warpmpm.rigid_modes import RigidModeAccelerator, _basis, _stencils
+from warpmpm.solvers.quasistatic import apply_stiffness, grid_view
+from warpmpm.solvers.rigid_modes import RigidModeAccelerator, _basis, _stencils
 from warpmpm.slices import DrivingSlice
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 from warpmpm.targets import affine_targets
 
 

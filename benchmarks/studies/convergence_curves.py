@@ -24,7 +24,7 @@ from warpmpm.slices import InPlaneAffine
 from warpmpm.targets import affine_targets
 from warpmpm.groundtruth import paper_affine, paper_ground_truth
 from warpmpm.experiment import CaseConfig, prepare_case
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 
 SETTINGS = [(0.3, 1.0), (0.3, 2.0), (0.3, 4.0), (0.3, 8.0), (0.5, 4.0)]  # (CFL, damping factor)
 

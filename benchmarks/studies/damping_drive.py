@@ -23,7 +23,7 @@ from warpmpm.driving import DriveConfig
 from warpmpm.experiment.case import prepare_case
 from warpmpm.experiment.config import CaseConfig
 from warpmpm.experiment.truth import make_ground_truth
-from warpmpm.solver import SolverConfig
+from warpmpm.solvers import SolverConfig
 
 #: (name, damping rule, integral ratio, settled mode); ki None: the drive's default for the stopping rule
 VARIANTS = [("fixed, PID (default)", "auto", None, False), ("adaptive, PID", "adaptive", 0.02, False),

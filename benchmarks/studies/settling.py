@@ -8,7 +8,7 @@ settled mode (``ConvergenceConfig(wait_settled=True)``: adaptive damping, PD dri
 Variants: ``off`` (no acceleration), ``organs`` (the coarse space of each organ's rigid motions), a number (the
 edge in mm of the cubes each organ is cut into, with their 6 rigid motions), or ``affine`` / ``affineNN`` (25 or NN
 mm cubes with their 12 affine motions: ``SolverConfig.rigid_mode_basis``); the package's default is 25 mm cubes with
-the basis :data:`warpmpm.solver.RIGID_MODE_BASIS`. Reported per variant: steps, whether the
+the basis :data:`warpmpm.solvers.RIGID_MODE_BASIS`. Reported per variant: steps, whether the
 package's own settled rule said settled, wall time (and its ratio to ``off`` in the same run), the time a step (and
 its ratio), the 99th-percentile motion of the last 500 steps (``-`` for a run of fewer than 1,000 steps), and how far the answer lies from the default variant's
 (mean and 99th percentile, mm): where ``off`` has not settled, that is how far it still had to go.
@@ -29,7 +29,7 @@ from warpmpm import InPlaneAffine, build_model, make_phantom
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
 from warpmpm.errors import InputError
 from warpmpm.slices import DrivingSlice
-from warpmpm.solver import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASIS, SolverConfig
+from warpmpm.solvers import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASIS, SolverConfig
 from warpmpm.targets import affine_targets
 
 SCENES = {"res3": ("phantom resolution 3 mm", dict(resolution=3.0), 1),

@@ -87,7 +87,7 @@ def main(argv=None):
     from warpmpm.driving import SliceDrivenEstimator
     from warpmpm.images import load_case
     from warpmpm.model import build_model
-    from warpmpm.solver import QuasiStaticConfig, SolverConfig
+    from warpmpm.solvers import QuasiStaticConfig, SolverConfig
 
     warnings.simplefilter("ignore")
     case = load_case(os.path.join(DATA, "labels.nii.gz"), os.path.join(DATA, "image.nii.gz"), preset="totalseg_mr")

@@ -16,7 +16,7 @@ from typing import Literal, get_args
 from ..errors import InputError
 from ..images import PRESETS, parse_organs
 from ..slices import parse_slices
-from ..solver import SolverConfig
+from ..solvers import SolverConfig
 
 __all__ = ["Protocol", "TargetKind", "DriveMode", "Lattice", "Baseline", "PROTOCOLS", "TARGET_KINDS", "DRIVE_MODES",
            "BASELINES", "AUTO_MODES", "MAX_SEED", "CaseConfig"]

@@ -227,7 +227,7 @@ class Progress:
 def size_report(prep: PreparedCase, cfg: CaseConfig) -> str:
     """The model's size, its grid and the memory the largest simulation of the run needs (the GT's finer grid)."""
     from ..groundtruth import gt_solver_config
-    from ..solver import cpu_threads, default_device, grid_layout, memory_estimate_bytes
+    from ..solvers import cpu_threads, default_device, grid_layout, memory_estimate_bytes
 
     m = prep.full_model
     dx, _, shape = grid_layout(m, replace(cfg.solver, device=cfg.device))

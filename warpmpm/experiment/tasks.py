@@ -58,7 +58,7 @@ def run_tasks(fn, args: list[tuple], on_result, *, workers: int = 1, scheduler: 
         return failed
     # worker processes split their steps over the cores left to each (processes x threads <= cores): a process is
     # spawned with this environment, so the variable reaches Warp's step in every worker
-    from ..parallel import THREADS_VARIABLE, cpu_cores
+    from ..solvers.parallel import THREADS_VARIABLE, cpu_cores
 
     old = os.environ.get(THREADS_VARIABLE)
     if old is None:

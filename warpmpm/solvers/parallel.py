@@ -3,17 +3,17 @@
 Warp's CPU backend runs each kernel launch on one core, so a frame on a two-core machine left half of it
 idle. A launch is a call into the compiled module through ``ctypes``, which releases Python's global
 interpreter lock while the kernel runs: launches of the same kernel over disjoint ranges of particles,
-made from several threads, run at the same time. :class:`MPMSolver <warpmpm.solver.MPMSolver>` splits its
+made from several threads, run at the same time. :class:`MPMSolver <warpmpm.solvers.explicit.MPMSolver>` splits its
 particle kernels that way (P2G into a copy of the grid per thread, summed by the grid update; G2P; the
 grid update over slabs of nodes); the launches that depend on a whole pass (the grid update after P2G,
-G2P after the grid update) wait for every thread. :class:`QuasiStaticSolver <warpmpm.quasistatic.QuasiStaticSolver>`
+G2P after the grid update) wait for every thread. :class:`QuasiStaticSolver <warpmpm.solvers.quasistatic.QuasiStaticSolver>`
 splits its particle kernels the same way (the Newton iteration's forces and the conjugate gradient's product, each
 thread into its own copy of the node arrays, added by the next kernel; the particle moves).
 
 Nothing here runs on CUDA, where one launch already fills the device, nor while a graph is being
 captured (the captured launch list must be the whole-array one).
 
-How many threads: :attr:`SolverConfig.cpu_threads <warpmpm.solver.SolverConfig.cpu_threads>`, else the
+How many threads: :attr:`SolverConfig.cpu_threads <warpmpm.solvers.config.SolverConfig.cpu_threads>`, else the
 environment variable ``WARPMPM_CPU_THREADS``, else the cores this process may use, at most 2 (the most
 measured). Work spread over several processes (``warpmpm sweep --workers N``) sets the variable for its
 workers so that processes times threads does not exceed the cores.
@@ -56,7 +56,7 @@ def default_threads() -> int:
         except ValueError:
             n = 0
         if not 1 <= n <= 64:
-            from .errors import InputError
+            from ..errors import InputError
 
             raise InputError(f"{THREADS_VARIABLE}={value!r}: it must be an integer from 1 to 64 (threads of a CPU step)")
         return n

@@ -205,10 +205,10 @@ def p2g(
     """Stress of the particle's F, then the scatter of mass, APIC momentum with the stress impulse and
     the external force (one pass: the stress is never stored) into ``grid_mm`` (momentum in x, y, z, mass in w:
     one address a node for both). ``part_nx``: where along the grid's first
-    axis this launch's copy of the grid starts (:mod:`warpmpm.parallel`: each thread of a split step
+    axis this launch's copy of the grid starts (:mod:`warpmpm.solvers.parallel`: each thread of a split step
     scatters into a copy of its own, so no two threads add to one node; 0 for a whole launch).
     ``want_force`` 1: also scatter the step's force impulse alone (stress and external, N s) into ``grid_f``
-    (the rigid-mode acceleration of :mod:`warpmpm.rigid_modes` restricts it); 0: ``grid_f`` is not touched.
+    (the rigid-mode acceleration of :mod:`warpmpm.solvers.rigid_modes` restricts it); 0: ``grid_f`` is not touched.
     ``stamp`` > 0: written into ``stamps`` at the block of the particle's first stencil node (for
     :func:`grid_update_blocks`; a block already stamped is only read); 0: ``stamps`` is not touched."""
     p = wp.tid()
@@ -345,7 +345,7 @@ def grid_update_fields(
     For two organs at a node the corrections cancel in sum: momentum is conserved.
 
     The scattered sums come in ``parts`` copies of the stacked fields (one per thread of a split P2G,
-    :mod:`warpmpm.parallel`), each ``n_fields * field_nx`` nodes long along the first axis: they are added
+    :mod:`warpmpm.solvers.parallel`), each ``n_fields * field_nx`` nodes long along the first axis: they are added
     here and cleared. The launch covers nodes ``i0 + tid`` along x (a split update)."""
     t, j, k = wp.tid()
     i = t + i0
@@ -453,7 +453,7 @@ def grid_update(
     measured: G2P 26.5 -> 20.5 ms on the paper-resolution phantom, one thread, against a vec3 grid).
 
     The scattered mass and momentum come in ``parts`` copies of the grid stacked along x (one per thread of
-    a split P2G, :mod:`warpmpm.parallel`; 1 for a whole one): they are added here. Clears what it has read,
+    a split P2G, :mod:`warpmpm.solvers.parallel`; 1 for a whole one): they are added here. Clears what it has read,
     so the next step's ``p2g`` scatters into a clean grid without a separate clearing pass over every node
     (the grid starts zeroed). The launch covers nodes ``i0 + tid`` along x (a split update).
     ``want_force`` 1: the copies of the force impulse ``grid_f`` are added into ``force_sum`` (every node written)
