@@ -32,7 +32,7 @@ from warpmpm.experiment import raw_numbers as raw
 from rendering_speed import moved_positions
 from warpmpm.model import build_model
 from warpmpm.phantom import make_phantom
-from warpmpm.rendering import particle_label_map
+from warpmpm.imaging import particle_label_map
 from warpmpm.tracker import _write_image, displacement_field
 
 

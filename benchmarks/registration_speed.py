@@ -20,7 +20,8 @@ import SimpleITK as sitk
 
 from warpmpm.experiment import raw_numbers as raw
 from warpmpm.phantom import make_phantom
-from warpmpm.registration import one_itk_thread, register_slices, resample_slice_affine, slice_mask
+from warpmpm.registration import one_itk_thread, register_slices, resample_slice_affine
+from warpmpm.imaging import slice_mask
 from warpmpm.slices import extract_slice
 
 

@@ -1,7 +1,7 @@
 """Rendering the estimate: time and fidelity of the far fill on a coarse grid, against the fill on every voxel.
 
-The cine tracker renders its current estimate on each frame's plane (:func:`warpmpm.rendering.render_plane`) and
-the ground truths warp the whole planning volume (:func:`warpmpm.rendering.warp_volume`). Both build the backward
+The cine tracker renders its current estimate on each frame's plane (:func:`warpmpm.imaging.render_plane`) and
+the ground truths warp the whole planning volume (:func:`warpmpm.imaging.warp_volume`). Both build the backward
 displacement field by two normalised Gaussian fills, 4 mm near the organs and 25 mm far from them. ``now`` smooths
 the far fill on cells of about a quarter of its width and, for a frame's slab, over everything within three far
 sigmas of it, and returns a frame's field on its thickness only (the near fill smoothed across the slab, then along
@@ -32,7 +32,7 @@ import SimpleITK as sitk
 
 
 from warpmpm.experiment import raw_numbers as raw
-from warpmpm import rendering
+from warpmpm import imaging
 from warpmpm.model import build_model
 from warpmpm.phantom import make_phantom
 
@@ -41,12 +41,12 @@ class Previous:
     """Inside ``with``: the far fill on every voxel of the field's own grid (the code before the coarse far fill)."""
 
     def __enter__(self):
-        self.cells, self.field = rendering.FAR_CELLS_PER_SIGMA, rendering.backward_displacement
-        rendering.FAR_CELLS_PER_SIGMA = 1e9
-        rendering.backward_displacement = lambda g, p, x, s=4.0, f=25.0, **ignored: self.field(g, p, x, s, f)
+        self.cells, self.field = imaging.FAR_CELLS_PER_SIGMA, imaging.backward_displacement
+        imaging.FAR_CELLS_PER_SIGMA = 1e9
+        imaging.backward_displacement = lambda g, p, x, s=4.0, f=25.0, **ignored: self.field(g, p, x, s, f)
 
     def __exit__(self, *exc):
-        rendering.FAR_CELLS_PER_SIGMA, rendering.backward_displacement = self.cells, self.field
+        imaging.FAR_CELLS_PER_SIGMA, imaging.backward_displacement = self.cells, self.field
 
 
 def moved_positions(positions_mm: np.ndarray) -> np.ndarray:
@@ -78,7 +78,7 @@ def main(argv=None):
     normal = np.array([1.0, 0.0, 0.0])
 
     def render():
-        return sitk.GetArrayFromImage(rendering.render_plane(case, planning, now, plane, normal, thickness, planning_image=image))
+        return sitk.GetArrayFromImage(imaging.render_plane(case, planning, now, plane, normal, thickness, planning_image=image))
 
     times = {k: [] for k in ("render_plane previous", "render_plane now", "warp_volume previous", "warp_volume now")}
     out = {}
@@ -89,16 +89,16 @@ def main(argv=None):
                 out["render " + method] = render()
                 times["render_plane " + method].append(time.perf_counter() - t)
                 t = time.perf_counter()
-                rendering.warp_volume(case, planning, now)
+                imaging.warp_volume(case, planning, now)
                 times["warp_volume " + method].append(time.perf_counter() - t)
                 if r == 0:
-                    out["field " + method] = sitk.GetArrayFromImage(rendering.backward_displacement(g, planning, now))
+                    out["field " + method] = sitk.GetArrayFromImage(imaging.backward_displacement(g, planning, now))
     # the render through the whole-volume field of the previous code: the ground truths' way
-    keep = rendering.slab_region
-    rendering.slab_region = lambda geometry, *args, **kw: ((0, 0, 0), tuple(geometry.size))
+    keep = imaging.slab_region
+    imaging.slab_region = lambda geometry, *args, **kw: ((0, 0, 0), tuple(geometry.size))
     with Previous():
         whole = render()
-    rendering.slab_region = keep
+    imaging.slab_region = keep
 
     ijk = np.rint(g.world_to_index(now)).astype(int)
     inside = np.all((ijk >= 0) & (ijk < np.asarray(g.size)), axis=1)
@@ -126,7 +126,7 @@ def main(argv=None):
         rows[f"render_{method}_vs_whole_mean"] = float(d.mean())
         rows[f"render_{method}_vs_whole_max"] = float(d.max())
     print(f"default phantom, {model.n} particles, grid {g.size}; a 6 mm sagittal frame through the pancreas, slab "
-          f"{rendering.slab_region(g, plane, normal, thickness / 2 + 12.0)}")
+          f"{imaging.slab_region(g, plane, normal, thickness / 2 + 12.0)}")
     print("| step | previous ms | now ms | now / previous |")
     print("|---|---|---|---|")
     for what in ("render_plane", "warp_volume"):

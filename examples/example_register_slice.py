@@ -15,7 +15,8 @@ import math
 import numpy as np
 
 from warpmpm import InPlaneAffine, make_phantom
-from warpmpm.registration import register_slices, resample_slice_affine, slice_mask
+from warpmpm.registration import register_slices, resample_slice_affine
+from warpmpm.imaging import slice_mask
 from warpmpm.slices import extract_slice
 
 

@@ -13,7 +13,7 @@ from warpmpm.groundtruth import PAPER_DEFORMATIONS, contact_ground_truth, paper_
 from warpmpm.images import crop_to_organs
 from warpmpm.metrics import dice, evaluate, particle_errors_mm
 from warpmpm.model import build_model
-from warpmpm.registration import register_volumes_affine
+from warpmpm.experiment.baselines import register_volumes_affine
 from warpmpm.cli import run_main as main
 from warpmpm.slices import in_plane_axes
 from warpmpm.solvers import SolverConfig

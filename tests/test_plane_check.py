@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from warpmpm.plane_check import MAX_MOTION_MM, check_planes, combined_motion
-from warpmpm.rendering import warp_array
+from warpmpm.imaging import warp_array
 from warpmpm.slices import DrivingSlice
 from warpmpm.targets import slice_targets
 

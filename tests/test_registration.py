@@ -7,7 +7,9 @@ import SimpleITK as sitk
 from conftest import data_case
 from warpmpm.images import InputError, load_case
 from warpmpm.phantom import make_phantom
-from warpmpm.registration import extract_slice, register_slices, resample_slice_affine, slice_mask
+from warpmpm.registration import register_slices, resample_slice_affine
+from warpmpm.imaging import slice_mask
+from warpmpm.slices import extract_slice
 
 
 def known_affine():

@@ -8,7 +8,7 @@ import SimpleITK as sitk
 
 from warpmpm.errors import InputError
 from warpmpm.experiment.cine_series import slab_average
-from warpmpm.rendering import render_plane, warp_volume
+from warpmpm.imaging import render_plane, warp_volume
 
 
 def _sagittal(case, i, thickness_mm):
@@ -80,7 +80,7 @@ def test_a_uniform_translation_moves_every_voxel_by_it(tiny_case):
     whole grid and on a thin slab of it (far from every particle the normalised fill's weights fall into the
     recursive filter's error: before the fallback 5 % of this grid's voxels read up to 1e6 mm)."""
     from warpmpm.model import build_model
-    from warpmpm.rendering import backward_displacement
+    from warpmpm.imaging import backward_displacement
 
     m = build_model(tiny_case, "psdl")
     t = np.array([1.0, 2.0, 3.0])
@@ -112,12 +112,12 @@ def test_the_coarse_far_fill_is_the_fine_one(monkeypatch):
     """The far fill (25 mm) smoothed on cells of 5 x 5 x 2 voxels and interpolated back is the fill smoothed on the
     voxels themselves: within 0.01 mm where the near fill weighs (within 8 mm of the particles; measured 0.0017) and
     0.05 mm elsewhere (measured 0.030) on a 3.7 mm field."""
-    from warpmpm import rendering
+    from warpmpm import imaging
 
     g, planning, moved, dist = _rotated_sphere()
-    coarse = sitk.GetArrayFromImage(rendering.backward_displacement(g, planning, moved))
-    monkeypatch.setattr(rendering, "FAR_CELLS_PER_SIGMA", 1e9)  # one voxel a cell: the fine far fill
-    fine = sitk.GetArrayFromImage(rendering.backward_displacement(g, planning, moved))
+    coarse = sitk.GetArrayFromImage(imaging.backward_displacement(g, planning, moved))
+    monkeypatch.setattr(imaging, "FAR_CELLS_PER_SIGMA", 1e9)  # one voxel a cell: the fine far fill
+    fine = sitk.GetArrayFromImage(imaging.backward_displacement(g, planning, moved))
     assert np.abs(fine).max() > 3.5
     diff = np.abs(coarse - fine).max(axis=-1)
     assert diff[dist < 8].max() < 0.01
@@ -129,7 +129,7 @@ def test_a_slab_field_sees_the_particles_beyond_the_slab():
     grid's field there, away from the particles where the far fill decides (measured: within 0.032 mm; the slab's
     own far fill, which sees only the particles inside it, is up to 0.29 mm off). A grid the slab is no crop of is
     refused."""
-    from warpmpm.rendering import backward_displacement
+    from warpmpm.imaging import backward_displacement
 
     g, planning, moved, dist = _rotated_sphere()
     whole = sitk.GetArrayFromImage(backward_displacement(g, planning, moved))
@@ -149,7 +149,7 @@ def test_a_field_returned_on_a_thin_crop_is_the_crop_of_the_whole_field():
     """render_plane asks for the field on the frame's thickness only: smoothed along the cut axis over the whole slab
     and along the other two over the crop (the Gaussian is separable), it is the whole slab's field cut to the crop, to
     float32 rounding; a crop cutting two axes takes the general path, with the same result."""
-    from warpmpm.rendering import backward_displacement
+    from warpmpm.imaging import backward_displacement
 
     g, planning, moved, _ = _rotated_sphere()
     slab = g.crop((24, 0, 0), (48, g.size[1], g.size[2]))
@@ -171,7 +171,7 @@ def test_far_from_the_organs_the_field_is_continuous_and_within_the_particles_mo
     values up to 2.2 mm outside the particles' range)."""
     from warpmpm.model import build_model
     from warpmpm.phantom import make_phantom
-    from warpmpm.rendering import backward_displacement
+    from warpmpm.imaging import backward_displacement
 
     case = make_phantom(seed=0)
     m = build_model(case, "psdl", sampling_step=2)

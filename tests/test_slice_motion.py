@@ -199,7 +199,7 @@ def _smoothly_warped_slice():
     """The phantom's mid-pancreas axial slice and the same slice under a known sinusoidal in-plane warp (up to 2 mm):
     ``(case, stored, captured, organs_mask, fwd, centre)``, ``fwd`` the warp of stored in-plane points (N, 2, mm)."""
     from warpmpm.phantom import make_phantom
-    from warpmpm.registration import slice_mask
+    from warpmpm.imaging import slice_mask
     from warpmpm.slices import extract_slice
 
     case = make_phantom(resolution=1.0)
@@ -247,7 +247,8 @@ def test_the_demons_refinement_recovers_a_known_deformation_over_an_organ_where_
     """The same warp, one organ at a time: the demons field started from an organ's own registered affine follows
     the warp over that organ (measured 0.04 mm RMS over the pancreas, 0.004 over the stomach) where the affine
     cannot (0.70 and 0.75 mm RMS off: over one organ the warp is close to, not exactly, affine)."""
-    from warpmpm.registration import register_organ_demons, slice_mask
+    from warpmpm.registration import register_organ_demons
+    from warpmpm.imaging import slice_mask
 
     case, stored, captured, mask, fwd, c, k = _smoothly_warped_slice()
     own = {o: slice_mask(case.labels, case.geometry, "axial", k, c, [case.label_map[o]], dilate_mm=0.0) for o in case.label_map}

@@ -24,14 +24,13 @@ import numpy as np
 
 from .driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator
 from .errors import InputError
-from .images import Case
 from .model import Material, ParticleModel
-from .rendering import particle_label_map, warp_volume  # noqa: F401  (particle_label_map: re-exported)
+from .imaging import particle_label_map
 from .slices import InPlaneAffine, in_plane_axes
 from .solvers import SolverConfig
 
 __all__ = ["PAPER_DEFORMATIONS", "paper_affine", "perturb_materials", "GroundTruth", "GT_CFL", "gt_solver_config",
-           "simulate_gt", "paper_ground_truth", "contact_targets", "contact_ground_truth", "warp_image"]
+           "simulate_gt", "paper_ground_truth", "contact_targets", "contact_ground_truth"]
 
 #: The paper's deformation table: type -> (r, g, s).
 PAPER_DEFORMATIONS = {
@@ -230,10 +229,3 @@ def contact_ground_truth(model: ParticleModel, *, seed: int = 0, perturb: bool =
     sim, res = simulate_gt(model, idx, targets, perturb=perturb, seed=seed + 77, solver_config=solver_config, device=device,
                            callback=callback, wait_settled=wait_settled, max_steps=max_steps)
     return GroundTruth(model, res.positions_mm, "contact", params | sim, res.steps, res.wall_s, res.converged)
-
-
-def warp_image(case: Case, model: ParticleModel, gt_positions_mm: np.ndarray, sigma_mm: float = 4.0,
-               far_sigma_mm: float = 25.0) -> np.ndarray:
-    """The planning image warped by the GT particle motion (z, y, x): :func:`warpmpm.rendering.warp_volume`
-    (a backward field filled at ``sigma_mm`` near the organs and ``far_sigma_mm`` elsewhere)."""
-    return warp_volume(case, model.positions_mm, gt_positions_mm, sigma_mm, far_sigma_mm)

@@ -6,7 +6,7 @@ driven by them ended 18 mm off against 9.5 mm for no motion at all. The registra
 time; this check looks at every plane at once, with the motion each plane's organs bring to the whole body.
 
 **The measure** (no truth used): the planning image moved by a motion (every particle's displacement, smoothed into a
-field: :func:`warpmpm.rendering.warp_array`) is cut on every captured plane and compared with the captured image by
+field: :func:`warpmpm.imaging.warp_array`) is cut on every captured plane and compared with the captured image by
 normalised cross-correlation over a fixed region of that plane (the organs' planning footprint dilated by
 :data:`REGION_MM`); the plane match of a motion is the mean over the planes. No motion scores the planning image
 itself.
@@ -34,8 +34,8 @@ import numpy as np
 
 from .errors import InputWarning
 from .model import ParticleModel
-from .registration import capture_slice, slice_mask
-from .rendering import warp_array
+from .imaging import capture_slice, slice_mask
+from .imaging import warp_array
 from .slices import DrivingSlice, extract_slice
 from .targets import plane_projector
 

@@ -1,5 +1,6 @@
-"""Registration with SimpleITK: the 2D slice-to-slice affine of the intra-treatment step, capture of
-the cine slice a device would image, and the 3D volume-to-volume affine baseline.
+"""Slice registration: the 2D slice-to-slice motion of the intra-treatment step (ITK's optimiser or the Gauss-Newton
+one, an affine per organ, a B-spline field, demons refinement). Capturing the slice a device images is
+:mod:`warpmpm.imaging`; the 3D volume registration baseline is :mod:`warpmpm.experiment.baselines`.
 
 Slice coordinates: a slice normal to image axis ``a`` is a 2D image whose physical coordinates are
 the in-plane offsets ``(u, v) = ((x - c) . e_u, (x - c) . e_v)`` in mm from the driving centre ``c``
@@ -19,40 +20,16 @@ import SimpleITK as sitk
 
 from .errors import InputError
 from .gauss_newton import GaussNewtonConfig, ncc, register_affine_gn
-from .images import Geometry
-from .slices import InPlaneAffine, extract_slice
+from .slices import InPlaneAffine
 
-__all__ = ["capture_slice", "crop_to_mask", "BACKENDS", "ONE_THREAD_MAX_PIXELS", "one_itk_thread",
-           "SliceRegistration", "register_slices", "register_slice_organs", "slice_metric", "SliceField",
-           "register_slice_bspline", "register_organ_demons", "slice_mask", "resample_slice_affine",
-           "VolumeRegistration", "register_volumes_affine", "organ_intensity_volume"]
+__all__ = ["crop_to_mask", "BACKENDS", "ONE_THREAD_MAX_PIXELS", "one_itk_thread", "SliceRegistration", "register_slices",
+           "register_slice_organs", "slice_metric", "SliceField", "register_slice_bspline", "register_organ_demons",
+           "resample_slice_affine"]
 
 
 # --------------------------------------------------------------------------------------------
 # 2D slices
 # --------------------------------------------------------------------------------------------
-
-def capture_slice(warped_volume: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray, *,
-                  noise_sd: float = 0.0, in_plane_factor: float = 1.0, seed: int = 0) -> sitk.Image:
-    """The cine slice the device would see on a plane of the GT-warped volume.
-
-    ``noise_sd`` adds Gaussian noise (intensity units); ``in_plane_factor > 1`` images at a coarser
-    in-plane resolution (downsampled by that factor, then resampled back to the planning grid).
-    """
-    img = extract_slice(warped_volume, geometry, orientation, index, centre_mm)
-    if in_plane_factor > 1.0:
-        size = [max(2, int(round(s / in_plane_factor))) for s in img.GetSize()]
-        spacing = [sp * s0 / s1 for sp, s0, s1 in zip(img.GetSpacing(), img.GetSize(), size)]
-        coarse = sitk.Resample(img, size, sitk.Transform(), sitk.sitkLinear, img.GetOrigin(), spacing, img.GetDirection(), 0.0)
-        img = sitk.Resample(coarse, img, sitk.Transform(), sitk.sitkLinear, 0.0)
-    if noise_sd > 0:
-        arr = sitk.GetArrayFromImage(img)
-        arr = arr + np.random.default_rng(seed).normal(0.0, noise_sd, arr.shape).astype(np.float32)
-        out = sitk.GetImageFromArray(arr.astype(np.float32))
-        out.CopyInformation(img)
-        img = out
-    return img
-
 
 def crop_to_mask(fixed: sitk.Image, moving: sitk.Image, mask: sitk.Image, margin_mm: float):
     """The two slices and the mask cut to the mask's bounding box plus ``margin_mm`` for the motion: far fewer
@@ -420,18 +397,6 @@ def register_organ_demons(stored: sitk.Image, captured: sitk.Image, initial: InP
     return SliceField(offset, co, sp, initial, time.perf_counter() - t0, min_jac, ok)
 
 
-def slice_mask(labels: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray, label_values,
-               dilate_mm: float = 6.0) -> sitk.Image:
-    """Mask of the given labels on a slice, dilated by ``dilate_mm`` so organ edges are in."""
-    m = np.isin(labels, list(label_values)).astype(np.float32)
-    img = extract_slice(m, geometry, orientation, index, centre_mm)
-    img = sitk.Cast(img > 0.5, sitk.sitkUInt8)
-    if dilate_mm <= 0:
-        return img
-    radius = [max(1, int(round(dilate_mm / s))) for s in img.GetSpacing()]
-    return sitk.BinaryDilate(img, radius)
-
-
 def resample_slice_affine(stored: sitk.Image, A: np.ndarray, t_mm: np.ndarray) -> sitk.Image:
     """Apply the forward in-plane motion ``(A, t)`` to a slice image (for tests and the viewer)."""
     tx = sitk.AffineTransform(2)
@@ -439,96 +404,3 @@ def resample_slice_affine(stored: sitk.Image, A: np.ndarray, t_mm: np.ndarray) -
     tx.SetMatrix(Ainv.ravel().tolist())
     tx.SetTranslation((-Ainv @ np.asarray(t_mm)).tolist())
     return sitk.Resample(stored, stored, tx, sitk.sitkLinear, 0.0)
-
-
-# --------------------------------------------------------------------------------------------
-# 3D volume-to-volume baseline
-# --------------------------------------------------------------------------------------------
-
-@dataclass
-class VolumeRegistration:
-    """3D affine mapping planning points to GT points: ``y = M x + b`` (mm)."""
-
-    matrix: np.ndarray
-    offset_mm: np.ndarray
-    wall_s: float
-    metric: float
-    fallback: bool = False
-
-    def apply(self, points_mm: np.ndarray) -> np.ndarray:
-        return np.asarray(points_mm) @ self.matrix.T + self.offset_mm
-
-
-def register_volumes_affine(planning: np.ndarray, target: np.ndarray, geometry: Geometry, *, mask: np.ndarray | None = None,
-                            iterations: int = 200, levels: tuple[int, ...] = (4, 2, 1)) -> VolumeRegistration:
-    """3D affine registration of the planning volume onto the target (GT) volume.
-
-    Both arrays are (z, y, x) on ``geometry``; ``mask`` (target grid, boolean) restricts the metric
-    (mean squares: the two volumes share a modality). Returns the planning->target point mapping.
-    """
-    fixed = geometry.apply_to(sitk.GetImageFromArray(target.astype(np.float32)))
-    moving = geometry.apply_to(sitk.GetImageFromArray(planning.astype(np.float32)))
-    reg = sitk.ImageRegistrationMethod()
-    reg.SetMetricAsMeanSquares()
-    reg.SetMetricSamplingStrategy(reg.NONE)
-    if mask is not None:
-        reg.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
-    tx = sitk.AffineTransform(3)
-    if mask is not None and mask.any():
-        kk, jj, ii = np.nonzero(mask)
-        centre = geometry.index_to_world(np.array([[ii.mean(), jj.mean(), kk.mean()]]))[0]
-    else:
-        centre = geometry.center_mm()
-    tx.SetCenter(centre.tolist())
-    reg.SetInitialTransform(tx, inPlace=True)
-    reg.SetInterpolator(sitk.sitkLinear)
-    reg.SetOptimizerAsRegularStepGradientDescent(learningRate=2.0, minStep=1e-4, numberOfIterations=iterations,
-                                                 relaxationFactor=0.6)
-    reg.SetOptimizerScalesFromPhysicalShift()
-    reg.SetShrinkFactorsPerLevel(list(levels))
-    reg.SetSmoothingSigmasPerLevel([max(0.0, f / 2.0) for f in levels])
-    reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOff()
-    t0 = time.perf_counter()
-    reg.Execute(fixed, moving)
-    wall = time.perf_counter() - t0
-    # tx maps target points to planning points: x = M (y - c) + c + tr. Invert: y = M^-1 (x - c - tr) + c.
-    M = np.asarray(tx.GetMatrix()).reshape(3, 3)
-    tr = np.asarray(tx.GetTranslation())
-    c = np.asarray(tx.GetCenter())
-    # The metric at the result, at full resolution; a result worse than no motion (a diverged
-    # optimisation) is replaced by the identity and flagged.
-    check = sitk.ImageRegistrationMethod()
-    check.SetMetricAsMeanSquares()
-    if mask is not None:
-        check.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
-    check.SetInitialTransform(tx)
-    check.SetInterpolator(sitk.sitkLinear)
-    final_metric = check.MetricEvaluate(fixed, moving)
-    identity = sitk.ImageRegistrationMethod()
-    identity.SetMetricAsMeanSquares()
-    if mask is not None:
-        identity.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
-    identity.SetInitialTransform(sitk.AffineTransform(3))
-    identity.SetInterpolator(sitk.sitkLinear)
-    identity_metric = identity.MetricEvaluate(fixed, moving)
-    # A diverged optimisation maps the organs off the image, where ITK drops the samples and the
-    # metric of the few left is misleadingly small: require most mask points to land inside.
-    kk, jj, ii = np.nonzero(mask) if mask is not None else np.nonzero(np.ones(target.shape, dtype=bool))
-    pts = geometry.index_to_world(np.stack([ii, jj, kk], axis=1)[:: max(1, len(ii) // 20000)])
-    mapped = geometry.world_to_index((pts - c) @ M.T + c + tr)
-    inside = float(np.mean(np.all((mapped >= -0.5) & (mapped <= np.asarray(geometry.size) - 0.5), axis=1)))
-    ok = (np.all(np.isfinite(M)) and np.all(np.isfinite(tr)) and abs(np.linalg.det(M)) > 1e-3
-          and final_metric <= identity_metric and inside >= 0.8)
-    if not ok:
-        return VolumeRegistration(np.eye(3), np.zeros(3), wall, float(identity_metric), fallback=True)
-    Minv = np.linalg.inv(M)
-    return VolumeRegistration(Minv, c - Minv @ (c + tr), wall, float(final_metric))
-
-
-def organ_intensity_volume(labels: np.ndarray, label_values: dict[str, int], geometry: Geometry, sigma_mm: float = 2.0) -> np.ndarray:
-    """A smooth synthetic intensity volume from a label map (for cases without an image)."""
-    vol = np.zeros(labels.shape, dtype=np.float32)
-    for n, (organ, value) in enumerate(sorted(label_values.items())):
-        vol[labels == value] = 100.0 * (n + 1)
-    img = geometry.apply_to(sitk.GetImageFromArray(vol))
-    return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(img, sigma_mm))

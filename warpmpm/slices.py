@@ -15,19 +15,18 @@ with ``A`` a 2x2 matrix (rotation, scale, shear) and ``t`` a translation in mm.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 import SimpleITK as sitk
 
 from .errors import InputError
 from .images import ORIENTATION_WORLD_AXIS, Geometry, orientation_image_axis  # noqa: F401 (re-exported: the plane of a slice)
+from .model import ParticleModel
 
 __all__ = ["Orientation", "ORIENTATIONS", "in_plane_axes", "DrivingSlice", "parse_slices", "driven_indices",
            "apply_in_plane_affine", "InPlaneAffine", "extract_slice"]
 
-if TYPE_CHECKING:  # the particle model is only read here (duck-typed), never imported at run time
-    from .model import ParticleModel
 
 Orientation = Literal["axial", "sagittal", "coronal"]
 ORIENTATIONS: tuple[str, ...] = ("axial", "sagittal", "coronal")
@@ -81,7 +80,7 @@ def parse_slices(text: str) -> list[DrivingSlice]:
     return out
 
 
-def driven_indices(model: "ParticleModel", slices: list[DrivingSlice]) -> np.ndarray:
+def driven_indices(model: ParticleModel, slices: list[DrivingSlice]) -> np.ndarray:
     """Indices of the particles lying on any of ``slices`` (sorted, unique).
 
     Raises :class:`InputError` for an index outside the volume or a slice holding no particle.

@@ -24,8 +24,9 @@ import SimpleITK as sitk
 from .errors import InputError, SimulationError, InputWarning
 from .images import Geometry
 from .model import ParticleModel
-from .rendering import particle_label_map, warp_array
-from .registration import SliceField, capture_slice, register_organ_demons, register_slice_bspline, register_slice_organs, slice_mask
+from .imaging import particle_label_map, warp_array
+from .registration import SliceField, register_organ_demons, register_slice_bspline, register_slice_organs
+from .imaging import capture_slice, slice_mask
 from .slices import DrivingSlice, InPlaneAffine, driven_indices, extract_slice, in_plane_axes
 
 __all__ = ["plane_projector", "DriveTargets", "slice_targets", "affine_drive_targets", "affine_targets",

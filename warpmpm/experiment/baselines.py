@@ -15,18 +15,21 @@
 
 from __future__ import annotations
 
+import time
+from dataclasses import dataclass
+
 import numpy as np
 import SimpleITK as sitk
 
 from ..groundtruth import GroundTruth
+from ..images import Geometry
 from ..model import ParticleModel
-from ..registration import register_volumes_affine
 from ..slices import DrivingSlice, InPlaneAffine, in_plane_axes
 from ..targets import field_motion
 from .capture import planning_and_gt_volumes
 from .case import PreparedCase
 
-__all__ = ["propagate", "UNCERTAIN_MM", "volume_registration"]
+__all__ = ["propagate", "UNCERTAIN_MM", "VolumeRegistration", "register_volumes_affine", "volume_registration"]
 
 
 def propagate(model: ParticleModel, s: DrivingSlice, affine: InPlaneAffine, centre_mm: np.ndarray,
@@ -81,3 +84,83 @@ def volume_registration(prep: PreparedCase, gt: GroundTruth, model: ParticleMode
     disagreement = float(np.linalg.norm(moved - check.apply(model.positions_mm), axis=1).mean())
     return moved, {"wall_s": reg.wall_s, "fallback_to_identity": reg.fallback, "disagreement_mm": disagreement,
                    "uncertain": bool(disagreement > UNCERTAIN_MM)}
+
+
+@dataclass
+class VolumeRegistration:
+    """3D affine mapping planning points to GT points: ``y = M x + b`` (mm)."""
+
+    matrix: np.ndarray
+    offset_mm: np.ndarray
+    wall_s: float
+    metric: float
+    fallback: bool = False
+
+    def apply(self, points_mm: np.ndarray) -> np.ndarray:
+        return np.asarray(points_mm) @ self.matrix.T + self.offset_mm
+
+
+def register_volumes_affine(planning: np.ndarray, target: np.ndarray, geometry: Geometry, *, mask: np.ndarray | None = None,
+                            iterations: int = 200, levels: tuple[int, ...] = (4, 2, 1)) -> VolumeRegistration:
+    """3D affine registration of the planning volume onto the target (GT) volume.
+
+    Both arrays are (z, y, x) on ``geometry``; ``mask`` (target grid, boolean) restricts the metric
+    (mean squares: the two volumes share a modality). Returns the planning->target point mapping.
+    """
+    fixed = geometry.apply_to(sitk.GetImageFromArray(target.astype(np.float32)))
+    moving = geometry.apply_to(sitk.GetImageFromArray(planning.astype(np.float32)))
+    reg = sitk.ImageRegistrationMethod()
+    reg.SetMetricAsMeanSquares()
+    reg.SetMetricSamplingStrategy(reg.NONE)
+    if mask is not None:
+        reg.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
+    tx = sitk.AffineTransform(3)
+    if mask is not None and mask.any():
+        kk, jj, ii = np.nonzero(mask)
+        centre = geometry.index_to_world(np.array([[ii.mean(), jj.mean(), kk.mean()]]))[0]
+    else:
+        centre = geometry.center_mm()
+    tx.SetCenter(centre.tolist())
+    reg.SetInitialTransform(tx, inPlace=True)
+    reg.SetInterpolator(sitk.sitkLinear)
+    reg.SetOptimizerAsRegularStepGradientDescent(learningRate=2.0, minStep=1e-4, numberOfIterations=iterations,
+                                                 relaxationFactor=0.6)
+    reg.SetOptimizerScalesFromPhysicalShift()
+    reg.SetShrinkFactorsPerLevel(list(levels))
+    reg.SetSmoothingSigmasPerLevel([max(0.0, f / 2.0) for f in levels])
+    reg.SmoothingSigmasAreSpecifiedInPhysicalUnitsOff()
+    t0 = time.perf_counter()
+    reg.Execute(fixed, moving)
+    wall = time.perf_counter() - t0
+    # tx maps target points to planning points: x = M (y - c) + c + tr. Invert: y = M^-1 (x - c - tr) + c.
+    M = np.asarray(tx.GetMatrix()).reshape(3, 3)
+    tr = np.asarray(tx.GetTranslation())
+    c = np.asarray(tx.GetCenter())
+    # The metric at the result, at full resolution; a result worse than no motion (a diverged
+    # optimisation) is replaced by the identity and flagged.
+    check = sitk.ImageRegistrationMethod()
+    check.SetMetricAsMeanSquares()
+    if mask is not None:
+        check.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
+    check.SetInitialTransform(tx)
+    check.SetInterpolator(sitk.sitkLinear)
+    final_metric = check.MetricEvaluate(fixed, moving)
+    identity = sitk.ImageRegistrationMethod()
+    identity.SetMetricAsMeanSquares()
+    if mask is not None:
+        identity.SetMetricFixedMask(geometry.apply_to(sitk.GetImageFromArray(mask.astype(np.uint8))))
+    identity.SetInitialTransform(sitk.AffineTransform(3))
+    identity.SetInterpolator(sitk.sitkLinear)
+    identity_metric = identity.MetricEvaluate(fixed, moving)
+    # A diverged optimisation maps the organs off the image, where ITK drops the samples and the
+    # metric of the few left is misleadingly small: require most mask points to land inside.
+    kk, jj, ii = np.nonzero(mask) if mask is not None else np.nonzero(np.ones(target.shape, dtype=bool))
+    pts = geometry.index_to_world(np.stack([ii, jj, kk], axis=1)[:: max(1, len(ii) // 20000)])
+    mapped = geometry.world_to_index((pts - c) @ M.T + c + tr)
+    inside = float(np.mean(np.all((mapped >= -0.5) & (mapped <= np.asarray(geometry.size) - 0.5), axis=1)))
+    ok = (np.all(np.isfinite(M)) and np.all(np.isfinite(tr)) and abs(np.linalg.det(M)) > 1e-3
+          and final_metric <= identity_metric and inside >= 0.8)
+    if not ok:
+        return VolumeRegistration(np.eye(3), np.zeros(3), wall, float(identity_metric), fallback=True)
+    Minv = np.linalg.inv(M)
+    return VolumeRegistration(Minv, c - Minv @ (c + tr), wall, float(final_metric))

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..groundtruth import GroundTruth, warp_image
+from ..groundtruth import GroundTruth
+from ..imaging import warp_image
 from ..images import Case
-from ..registration import organ_intensity_volume
+from ..imaging import organ_intensity_volume
 
 __all__ = ["planning_and_gt_volumes"]
 

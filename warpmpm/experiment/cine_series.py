@@ -24,7 +24,8 @@ import numpy as np
 import SimpleITK as sitk
 
 from ..errors import InputError
-from ..groundtruth import perturb_materials, simulate_gt, warp_image
+from ..groundtruth import perturb_materials, simulate_gt
+from ..imaging import warp_image
 from ..images import ORGANS, Case, Geometry
 from ..metrics import dice, voxelize
 from ..model import build_model
@@ -136,7 +137,7 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
 
                 uids = {"0020|000d": generate_uid(), "0020|000e": generate_uid(), "0020|0052": generate_uid()}
             _write_dicom_frame(frame, os.path.join(cine, f"frame_{k:04d}.dcm"), k, t, thickness_mm, case.image, uids)
-        from ..rendering import particle_label_map
+        from ..imaging import particle_label_map
 
         lab = particle_label_map(model, pos, {o: case.label_map[o] for o in model.organs})
         sitk.WriteImage(g.apply_to(sitk.GetImageFromArray(lab.astype(np.uint8))), os.path.join(truth, "labels", f"frame_{k:04d}.nii.gz"))

@@ -1,4 +1,5 @@
-"""The planning image as a particle state shows it.
+"""Making images from particles: the planning image as a particle state shows it (a whole volume, or one cine plane's
+slab), label maps from particles, the slice a device images and the masks of organs on a slice.
 
 A state of the particle model (positions, mm) moves the planning image: each voxel takes the intensity
 found where the tissue now at it came from. The backward displacement ``planning - now`` is scattered from
@@ -31,9 +32,10 @@ import SimpleITK as sitk
 from .errors import InputError
 from .images import Case, Geometry
 from .model import ParticleModel, voxelize
+from .slices import extract_slice
 
-__all__ = ["backward_displacement", "FAR_CELLS_PER_SIGMA", "scatter_displacements", "warp_volume", "warp_array",
-           "slab_region", "render_plane", "particle_label_map"]
+__all__ = ["backward_displacement", "FAR_CELLS_PER_SIGMA", "scatter_displacements", "warp_volume", "warp_array", "warp_image",
+           "slab_region", "render_plane", "particle_label_map", "capture_slice", "slice_mask", "organ_intensity_volume"]
 
 
 def _check_sigmas(sigma_mm: float, far_sigma_mm: float) -> None:
@@ -319,3 +321,57 @@ def particle_label_map(model: ParticleModel, positions_mm: np.ndarray, label_val
     ref = sitk.Image([int(v) for v in model.geometry.size], sitk.sitkInt32)
     model.geometry.apply_to(ref)
     return sitk.GetArrayFromImage(sitk.Resample(img, ref, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkInt32))
+
+
+def warp_image(case: Case, model: ParticleModel, gt_positions_mm: np.ndarray, sigma_mm: float = 4.0,
+               far_sigma_mm: float = 25.0) -> np.ndarray:
+    """The planning image warped by the GT particle motion (z, y, x): :func:`warp_volume`
+    (a backward field filled at ``sigma_mm`` near the organs and ``far_sigma_mm`` elsewhere)."""
+    return warp_volume(case, model.positions_mm, gt_positions_mm, sigma_mm, far_sigma_mm)
+
+
+# --------------------------------------------------------------------------------------------
+# Slices and masks
+# --------------------------------------------------------------------------------------------
+
+def capture_slice(warped_volume: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray, *,
+                  noise_sd: float = 0.0, in_plane_factor: float = 1.0, seed: int = 0) -> sitk.Image:
+    """The cine slice the device would see on a plane of the GT-warped volume.
+
+    ``noise_sd`` adds Gaussian noise (intensity units); ``in_plane_factor > 1`` images at a coarser
+    in-plane resolution (downsampled by that factor, then resampled back to the planning grid).
+    """
+    img = extract_slice(warped_volume, geometry, orientation, index, centre_mm)
+    if in_plane_factor > 1.0:
+        size = [max(2, int(round(s / in_plane_factor))) for s in img.GetSize()]
+        spacing = [sp * s0 / s1 for sp, s0, s1 in zip(img.GetSpacing(), img.GetSize(), size)]
+        coarse = sitk.Resample(img, size, sitk.Transform(), sitk.sitkLinear, img.GetOrigin(), spacing, img.GetDirection(), 0.0)
+        img = sitk.Resample(coarse, img, sitk.Transform(), sitk.sitkLinear, 0.0)
+    if noise_sd > 0:
+        arr = sitk.GetArrayFromImage(img)
+        arr = arr + np.random.default_rng(seed).normal(0.0, noise_sd, arr.shape).astype(np.float32)
+        out = sitk.GetImageFromArray(arr.astype(np.float32))
+        out.CopyInformation(img)
+        img = out
+    return img
+
+
+def slice_mask(labels: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray, label_values,
+               dilate_mm: float = 6.0) -> sitk.Image:
+    """Mask of the given labels on a slice, dilated by ``dilate_mm`` so organ edges are in."""
+    m = np.isin(labels, list(label_values)).astype(np.float32)
+    img = extract_slice(m, geometry, orientation, index, centre_mm)
+    img = sitk.Cast(img > 0.5, sitk.sitkUInt8)
+    if dilate_mm <= 0:
+        return img
+    radius = [max(1, int(round(dilate_mm / s))) for s in img.GetSpacing()]
+    return sitk.BinaryDilate(img, radius)
+
+
+def organ_intensity_volume(labels: np.ndarray, label_values: dict[str, int], geometry: Geometry, sigma_mm: float = 2.0) -> np.ndarray:
+    """A smooth synthetic intensity volume from a label map (for cases without an image)."""
+    vol = np.zeros(labels.shape, dtype=np.float32)
+    for n, (organ, value) in enumerate(sorted(label_values.items())):
+        vol[labels == value] = 100.0 * (n + 1)
+    img = geometry.apply_to(sitk.GetImageFromArray(vol))
+    return sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(img, sigma_mm))
