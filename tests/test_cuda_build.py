@@ -16,7 +16,7 @@ def kernel_modules() -> dict[str, list[str]]:
     """Package modules that define ``@wp.kernel``s, with their kernel names."""
     out = {}
     for info in pkgutil.walk_packages(warpmpm.__path__, "warpmpm."):
-        if ".viewer" in info.name:
+        if ".viewer" in info.name or info.name.endswith(".__main__"):
             continue
         mod = importlib.import_module(info.name)
         names = [k.key for k in vars(mod).values() if isinstance(k, wp.Kernel) and k.module.name == info.name]

@@ -11,8 +11,11 @@ baselines, one run at a time or as sweeps. It sits on top of the library and the
   :mod:`~warpmpm.experiment.tables`: Markdown tables; :mod:`~warpmpm.experiment.auto`: ``--slices auto``.
 """
 
-from .case import PreparedCase, prepare_case  # noqa: F401
-from .config import CaseConfig  # noqa: F401
-from .result import EstimateScores, RunResult, Scores  # noqa: F401
-from .run import run_case, run_prepared  # noqa: F401
-from .truth import make_ground_truth  # noqa: F401
+from .case import PreparedCase, prepare_case
+from .config import CaseConfig
+from .result import EstimateScores, RunResult, Scores
+from .run import run_case, run_prepared
+from .truth import make_ground_truth
+
+__all__ = ["PreparedCase", "prepare_case", "CaseConfig", "EstimateScores", "RunResult", "Scores", "run_case", "run_prepared",
+           "make_ground_truth"]

@@ -11,6 +11,9 @@ sparse matrix.
 
 import warp as wp
 
+__all__ = ["spline_w", "spline_dw", "node_weight_grad", "node_of", "offset_slot", "assemble_stiffness",
+           "assemble_springs", "spring_load", "interpolate"]
+
 wp.set_module_options({"enable_backward": False})
 
 

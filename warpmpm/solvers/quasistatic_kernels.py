@@ -5,6 +5,11 @@ import warp as wp
 
 from . import explicit_kernels as kernels
 
+__all__ = ["node_index", "internal_and_drive_forces", "add_copies", "apply_stiffness", "finish_matvec",
+           "inverse_diagonal", "RZ", "PAP", "RZ_NEXT", "RR", "RR_LAST", "RZ_LAST", "DOT_SLOTS", "add_partial",
+           "cg_reduce", "cg_start", "cg_dot", "coarse_restrict", "coarse_solve", "coarse_prolong", "organ_node_mass",
+           "cg_advance", "cg_direction", "cg_next", "move_particles", "update_multipliers"]
+
 # forward kernels only, no adjoints to compile (why: warpmpm.solvers.explicit_kernels)
 wp.set_module_options({"enable_backward": False})
 

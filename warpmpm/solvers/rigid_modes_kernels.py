@@ -3,6 +3,9 @@ motions, the boosted coarse modes' projection and expansion, the guard, prolongi
 
 import warp as wp
 
+__all__ = ["SLOTS", "node_ijk", "restrict_force", "reduce_slots", "coarse_project", "coarse_expand", "coarse_guard",
+           "prolong_velocity", "energy_blocks"]
+
 # forward kernels only, no adjoints to compile (why: warpmpm.solvers.explicit_kernels)
 wp.set_module_options({"enable_backward": False})
 

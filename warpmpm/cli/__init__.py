@@ -1,0 +1,96 @@
+"""The ``warpmpm`` command: ``run | sweep | multi | train | view | track | make-cine | evaluate-track``.
+
+    warpmpm run                                  # the seed's experiment on the built-in phantom (= examples/seed_experiment.py)
+    warpmpm run --labels L.nii.gz --image I.nii.gz --preset totalseg_mr --json out.json --rrd out.rrd
+    warpmpm sweep --phantom-seeds 0,1 --organs all --out runs/sweep.csv --workers 2
+    warpmpm multi --phantom-seeds 0,1 --out runs/multi.csv
+    warpmpm train runs/sweep.csv --out runs/selection_error.json
+    warpmpm view out.rrd [--summary | --screenshot out.png]
+    warpmpm make-cine --out runs/cine --frames 8                  # a synthetic series with its truth
+    warpmpm track --image I --labels L --cine runs/cine/cine --out runs/track
+    warpmpm evaluate-track --track runs/track --truth runs/cine/truth
+
+Exit codes: 0 success; 1 some sweep tasks failed (their rows are missing; re-run to retry); 2 bad
+input (one ``error:`` line naming it, nothing written); 3 the simulation failed; 130 interrupted
+(Ctrl-C: one line, no partial output); 141 standard output closed by its reader (``| head``: no traceback,
+and what was still to be written may be missing, as with a shell's SIGPIPE).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from ..errors import InputError, SimulationError
+from .exit_codes import EXIT_INPUT, EXIT_INTERRUPTED, EXIT_PIPE_CLOSED, EXIT_SIMULATION, EXIT_TASKS_FAILED
+from .experiment_commands import cmd_multi, cmd_run, cmd_sweep, cmd_train, cmd_view, config_from_args
+from .options import build_parser
+from .track_commands import cmd_cine_info, cmd_evaluate_track, cmd_make_cine, cmd_make_truth, cmd_track
+
+__all__ = ["build_parser", "config_from_args", "cmd_run", "cmd_sweep", "cmd_multi", "cmd_train", "cmd_view",
+           "cmd_track", "cmd_make_cine", "cmd_make_truth", "cmd_evaluate_track", "cmd_cine_info", "COMMANDS", "main", "run_main",
+           "EXIT_TASKS_FAILED", "EXIT_INPUT", "EXIT_SIMULATION", "EXIT_INTERRUPTED", "EXIT_PIPE_CLOSED"]
+
+
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    return f"warning: {message}\n"
+
+
+def _quiet(verbose: bool) -> None:
+    """Show only what the user asked for: no Warp banner or module-load lines, no ITK warnings; our own
+    warnings as one ``warning:`` line each."""
+    import warnings
+
+    import warp as wp
+
+    if not verbose:
+        warnings.formatwarning = _one_line_warning
+
+    wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_ERROR
+    if verbose:
+        return
+    import SimpleITK as sitk
+
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    # Warp's native library prints "CUDA driver not found" straight to file descriptor 2 on a machine
+    # without a GPU, whatever the log level: initialise it with that descriptor muted (a run that asks
+    # for CUDA still gets a clear error from warpmpm when none is there).
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
+COMMANDS = {"run": cmd_run, "cine-info": cmd_cine_info, "sweep": cmd_sweep, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
+            "make-cine": cmd_make_cine, "make-truth": cmd_make_truth, "evaluate-track": cmd_evaluate_track}
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``warpmpm`` console script; returns the exit code (module docstring)."""
+    a = build_parser().parse_args(argv)
+    _quiet(getattr(a, "verbose", False))
+    try:
+        return COMMANDS[a.command](a)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except SimulationError as exc:
+        print(f"simulation error: {exc}", file=sys.stderr)
+        return EXIT_SIMULATION
+    except KeyboardInterrupt:
+        print("interrupted: nothing was written", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # the reader of stdout went away (`warpmpm ... | head`): stop without a traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_PIPE_CLOSED
+
+
+def run_main(argv=None) -> int:
+    """``warpmpm run`` with ``argv`` (what ``examples/seed_experiment.py`` calls)."""
+    return main(["run", *(sys.argv[1:] if argv is None else argv)])
+

@@ -1,0 +1,5 @@
+"""The ``warpmpm`` command's exit codes (:mod:`warpmpm.cli`)."""
+
+__all__ = ["EXIT_TASKS_FAILED", "EXIT_INPUT", "EXIT_SIMULATION", "EXIT_INTERRUPTED", "EXIT_PIPE_CLOSED"]
+
+EXIT_TASKS_FAILED, EXIT_INPUT, EXIT_SIMULATION, EXIT_INTERRUPTED, EXIT_PIPE_CLOSED = 1, 2, 3, 130, 141

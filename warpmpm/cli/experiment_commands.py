@@ -1,0 +1,148 @@
+"""The seed experiment's commands: ``run``, ``sweep``, ``multi``, ``train``, ``view``."""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import replace
+
+from ..errors import InputError
+
+from .exit_codes import EXIT_TASKS_FAILED
+
+__all__ = ["config_from_args", "cmd_run", "cmd_sweep", "cmd_multi", "cmd_train", "cmd_view"]
+
+
+def config_from_args(a):
+    """The :class:`~warpmpm.experiment.config.CaseConfig` of ``warpmpm run``'s options (checked)."""
+    from ..experiment.config import CaseConfig
+    from ..solvers import SolverConfig
+
+    step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
+    baselines = ("initial", "propagate", "rigid", "completion") + (() if a.no_volume_registration else ("volume_registration",))
+    protocol = "field" if a.truth_field is not None else a.protocol
+    return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
+                      organs=a.organs, slices=a.slices, protocol=protocol, truth_field=a.truth_field, deformation=a.deformation, targets=a.targets, drive=a.drive,
+                      registration=a.registration, registration_passes=a.registration_passes, plane_check=not a.no_plane_check,
+                      device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
+                      baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
+                      solver=SolverConfig(contact=a.contact, friction=a.friction, method=a.solver, cpu_threads=a.threads))
+
+
+def cmd_run(a) -> int:
+    from ..experiment.auto import auto_condition
+    from ..experiment.io import check_output_path, write_json_atomic
+    from ..experiment.run import run_case
+    from ..experiment.tables import format_table
+
+    cfg = config_from_args(a)
+    for path, option in ((a.json, "--json"), (a.rrd, "--rrd")):
+        if path:
+            check_output_path(path, option)
+    selection = None
+    if cfg.is_auto:
+        organs, slices, selection = auto_condition(cfg, a.selector, a.plane_selector)
+        cfg = replace(cfg, organs=organs, slices=slices)
+    recorder = None
+    if a.rrd:
+        from viewer.recording import RerunRecorder
+
+        recorder = RerunRecorder(a.rrd, every=cfg.rrd_every)
+    from ..experiment.run import Progress
+
+    def tell(text, end="\n"):
+        print(text, end=end, file=sys.stderr, flush=True)
+
+    out = run_case(cfg, recorder, Progress(None if a.quiet else tell, live=sys.stderr.isatty()))
+    out.selection = selection
+    print(format_table(out))
+    if selection is not None:
+        print(f"selected {out.organs} {','.join(out.slices)} in {selection['selection_ms']:.2f} ms "
+              f"(predicted {selection['predicted']:.2f})")
+    if a.json:
+        write_json_atomic(a.json, out)
+        print(f"wrote {a.json}")
+    if a.rrd:
+        print(f"wrote {a.rrd} (open with: warpmpm view {a.rrd})")
+    return 0
+
+
+def _tasks_common(a):
+    from ..experiment.sweep import sweep_cases
+
+    if a.workers < 1:
+        raise InputError(f"--workers must be at least 1, got {a.workers}")
+    try:
+        deformations = [int(x) for x in a.deformations.split(",")]
+    except ValueError:
+        raise InputError(f"--deformations must be comma-separated integers, got {a.deformations!r}") from None
+    cases = sweep_cases(a.labels, a.image, a.preset, a.phantom_seeds, a.phantom_resolution)
+    return cases, deformations
+
+
+def _write_table(out_csv: str, table: str) -> None:
+    from ..experiment.io import check_output_path
+
+    path = os.path.splitext(check_output_path(out_csv, "--out"))[0] + ".md"
+    tmp = path + ".part"
+    with open(tmp, "w") as f:
+        f.write(table + "\n")
+    os.replace(tmp, path)
+
+
+def cmd_sweep(a) -> int:
+    from ..experiment.config import CaseConfig
+    from ..experiment.sweep import sweep
+    from ..experiment.tables import summarize
+    from ..images import COMBINATIONS
+
+    if a.slice_stride < 1:
+        raise InputError(f"--slice-stride must be at least 1, got {a.slice_stride}")
+    cases, deformations = _tasks_common(a)
+    combos = COMBINATIONS if a.organs == "all" else tuple(a.organs.split(","))
+    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
+    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device, targets=a.targets, drive=a.drive, max_steps=a.max_steps,
+                      exclude_driven=True if a.exclude_driven else None)
+    for combo in combos:
+        replace(base, organs=combo)  # each combination checked before any task starts
+    rows, failed = sweep(cases, deformations, combos, tuple(a.orientations.split(",")), a.out, protocol=a.protocol,
+                         slice_stride=a.slice_stride, base=base, scheduler=a.scheduler, workers=a.workers)
+    table = summarize(rows)
+    print(table)
+    _write_table(a.out, table)
+    return EXIT_TASKS_FAILED if failed else 0
+
+
+def cmd_multi(a) -> int:
+    from ..experiment.config import CaseConfig
+    from ..experiment.multi_direction import multi_direction
+    from ..experiment.tables import summarize_multi
+    from ..selection import DEFAULT_PLANE_SELECTOR, DEFAULT_SELECTOR
+
+    if a.top < 1:
+        raise InputError(f"--top must be at least 1, got {a.top}")
+    cases, deformations = _tasks_common(a)
+    d = os.path.dirname(os.path.abspath(a.out))
+    if not os.path.isdir(d):
+        raise InputError(f"output folder {d} for --out does not exist")
+    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device,
+                      protocol=a.protocol)
+    rows, failed = multi_direction(cases, deformations, a.selector or DEFAULT_SELECTOR, a.plane_selector or DEFAULT_PLANE_SELECTOR,
+                                   a.out, base=base, top=a.top, workers=a.workers, scheduler=a.scheduler)
+    table = summarize_multi(rows)
+    print(table)
+    _write_table(a.out, table)
+    return EXIT_TASKS_FAILED if failed else 0
+
+
+def cmd_train(a) -> int:
+    from ..experiment.train import train
+
+    return train(a)
+
+
+def cmd_view(a) -> int:
+    from viewer.__main__ import main as view_main
+
+    argv = [a.rrd] + (["--summary"] if a.summary else []) + (["--screenshot", a.screenshot] if a.screenshot else [])
+    return view_main(argv)
