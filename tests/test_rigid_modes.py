@@ -10,7 +10,8 @@ from warpmpm.solvers import quasistatic as qs
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
 from warpmpm.errors import InputError
 from warpmpm.fem import fem_displacement_mm
-from warpmpm.solvers.rigid_modes import NODE_GROUPS, RigidModeAccelerator, _basis, aggregate_groups
+from warpmpm.solvers.coarse_space import NODE_GROUPS, aggregate_groups, basis
+from warpmpm.solvers.rigid_modes import RigidModeAccelerator
 from warpmpm.scenes import inclusion_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine
 from warpmpm.solvers import SolverConfig
@@ -92,7 +93,7 @@ def test_the_coarse_matrices_are_the_grid_stiffness_and_mass_of_the_group_motion
         acc = RigidModeAccelerator(mm, modes=modes, aggregate_mm=size)
         c = acc.coarse_matrices(est.state, est.driven, axes, est.gains.kp_per_s2)
         S, K = acc.stride, acc.stride * acc.n_groups
-        a_c, A_c = _basis(acc.affine)
+        a_c, A_c = basis(acc.affine)
         nodes = c["nodes"]
         ny, nz = mm.grid_shape[1], mm.grid_shape[2]
         X = np.stack([nodes // (ny * nz), (nodes // nz) % ny, nodes % nz], axis=1) * mm.dx_mm * 1e-3

@@ -31,7 +31,8 @@ import warp as wp
 from warpmpm import InPlaneAffine, build_model, make_phantom
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
 from warpmpm.solvers.quasistatic import apply_stiffness, grid_view
-from warpmpm.solvers.rigid_modes import RigidModeAccelerator, _basis, _stencils
+from warpmpm.solvers.coarse_space import basis, stencils
+from warpmpm.solvers.rigid_modes import RigidModeAccelerator
 from warpmpm.slices import DrivingSlice
 from warpmpm.solvers import SolverConfig
 from warpmpm.targets import affine_targets
@@ -40,7 +41,7 @@ from warpmpm.targets import affine_targets
 def coarse_basis(c: dict, dx: float, grid_shape, affine: bool) -> np.ndarray:
     """The coarse space ``Z`` of a build (``RigidModeAccelerator.coarse``) as a dense (3 x active nodes, modes) matrix:
     each group's share of each node times its motion there, as the restriction and prolongation kernels apply it."""
-    a_c, A_c = _basis(affine)
+    a_c, A_c = basis(affine)
     S = a_c.shape[0]
     nodes = c["nodes"]
     ny, nz = grid_shape[1], grid_shape[2]
@@ -129,7 +130,7 @@ def main(argv=None):
     # the move on the active nodes (mass-weighted, the MPM's B-spline weights)
     move = keep["x1"] - x0
     mass = est.mpm.mass_kg.astype(np.float64)
-    flat, w, _ = _stencils(x0, dx, est.mpm.grid_shape)
+    flat, w, _ = stencils(wp.array(x0.astype(np.float32), dtype=wp.vec3, device=est.mpm.device), dx, est.mpm.grid_shape, est.mpm.device)
     nn = int(np.prod(est.mpm.grid_shape))
     mom = np.zeros((nn, 3))
     mn = np.zeros(nn)

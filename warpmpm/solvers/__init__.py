@@ -8,6 +8,11 @@
   conjugate-gradient solve of the same equilibrium.
 - :mod:`~warpmpm.solvers.rigid_modes` (kernels in :mod:`~warpmpm.solvers.rigid_modes_kernels`): the coarse level that
   accelerates the explicit relaxation.
+- :mod:`~warpmpm.solvers.coarse_space` (kernels in :mod:`~warpmpm.solvers.coarse_space_kernels`): the one coarse space
+  both of those use: groups' rigid or affine motions on the grid, restriction and prolongation.
+- :mod:`~warpmpm.solvers.convergence`, :mod:`~warpmpm.solvers.drive`, :mod:`~warpmpm.solvers.relaxation`,
+  :mod:`~warpmpm.solvers.frame`, :mod:`~warpmpm.solvers.result`: a frame: the stopping rule, the PID drive, the explicit
+  relaxation loop, the :class:`~warpmpm.solvers.frame.FrameSolver` protocol and the choice among the frame solvers.
 - :mod:`~warpmpm.solvers.completion` (kernels in :mod:`~warpmpm.solvers.completion_kernels`): the linear elastic
   equilibrium of the whole abdomen that completes what the planes see.
 """

@@ -56,12 +56,13 @@ import warp as wp
 from ..errors import InputError, SimulationError
 from . import explicit_kernels as kernels
 from . import parallel
+from .coarse_space import CoarseSpace
+from .coarse_space_kernels import prolong_nodes, restrict_nodes
 from .config import QuasiStaticConfig
 from .grid import MPMModel, State, cpu_threads
 from .quasistatic_kernels import (DOT_SLOTS, RZ, RZ_LAST, RZ_NEXT, add_copies, apply_stiffness, cg_advance,
-                                  cg_direction, cg_dot, cg_next, cg_reduce, cg_start, coarse_prolong, coarse_restrict,
-                                  coarse_solve, finish_matvec, internal_and_drive_forces, inverse_diagonal,
-                                  move_particles, organ_node_mass, update_multipliers)
+                                  cg_direction, cg_dot, cg_next, cg_reduce, cg_start, coarse_solve, finish_matvec,
+                                  internal_and_drive_forces, inverse_diagonal, move_particles, update_multipliers)
 
 __all__ = ["QuasiStaticConfig", "QuasiStaticResult", "QuasiStaticSolver"]
 
@@ -152,9 +153,9 @@ class QuasiStaticSolver:
         mu = model.particles.per_particle("mu_pa")
         self._stiffness = (lam + 2 * mu) * model.particles.volume_mm3 * 1e-9 * 4.0 / self._dx**2  # N/m per particle
         self._state = None
-        self._organ = wp.array(model.particles.organ_index.astype(np.int32), dtype=int, device=d)
-        self._share = wp.zeros((nn, len(model.particles.organs)), dtype=float, device=d)  # organ shares of node mass
-        self._coarse_nodes = None
+        #: the coarse space of the two-level preconditioner: each organ's rigid motions
+        self.coarse_space = CoarseSpace(model, np.unique(model.particles.organ_index, return_inverse=True)[1].ravel(), "rigid")
+        self._coarse = None
 
     def _conjugate_gradient(self, state: State, k_reg: float, max_iterations: int) -> tuple[int, bool]:
         """Solve ``(K + k_reg M) du = force`` by preconditioned CG (``du`` starts at zero): the iterations it took and
@@ -168,7 +169,7 @@ class QuasiStaticSolver:
         part.zero_()
         na = self._active.shape[0]
         wp.launch(cg_start, na, [self._active, self.force, self.inv_diag, self.du, self._r, self._z, self._p, part], device=d)
-        coarse = self._coarse_nodes is not None
+        coarse = self._coarse is not None
         if coarse:
             part.zero_()
             self._coarse_correct()
@@ -263,42 +264,25 @@ class QuasiStaticSolver:
             for k in range(self.threads))
 
     def _coarse_correct(self) -> None:
-        """``z += Z E^-1 Z^T r`` (device only)."""
-        d = self.model.device
+        """``z += Z E^-1 Z^T r`` (device only; the coarse space's restriction and prolongation)."""
+        d, c = self.model.device, self._coarse
         self._coarse_t.zero_()
-        na = self._coarse_nodes.shape[0]
-        wp.launch(coarse_restrict, na, [self._coarse_Z, self._coarse_nodes, self._r, self._coarse_t], device=d)
-        wp.launch(coarse_solve, self._coarse_Z.shape[1], [self._coarse_E_inv, self._coarse_t, self._coarse_y], device=d)
-        wp.launch(coarse_prolong, na, [self._coarse_Z, self._coarse_nodes, self._coarse_y, self._z], device=d)
+        na = c["nodes"].shape[0]
+        args = [c["nodes"], c["node_group"], c["node_share"], c["centre"], c["inv_len"]]
+        geom = [self._ny, self._nz, self._dx, 0]
+        wp.launch(restrict_nodes, na, args + [self._r] + geom + [self._coarse_t], device=d)
+        wp.launch(coarse_solve, self.coarse_space.size, [self._coarse_E_inv, self._coarse_t, self._coarse_y], device=d)
+        wp.launch(prolong_nodes, na, args + [self._coarse_y] + geom + [self._z], device=d)
 
     def _build_coarse(self, state: State, k_reg: float) -> None:
-        """The coarse space of the two-level preconditioner: each organ's rigid motions (3 translations, 3 rotations
-        about its centre) on the nodes its particles touch, weighed by its share of each node's mass; and the coarse
-        matrix ``E = Z^T A Z`` (one matrix-vector product per mode), inverted on the host in float64."""
-        m, d, nn = self.model, self.model.device, self.n_nodes
-        n_org = len(m.particles.organs)
-        self._share.zero_()
-        wp.launch(organ_node_mass, m.n, [state.x, m.mass, self._organ, self._dx, self._ny, self._nz, self._share], device=d)
-        share = self._share.numpy().astype(np.float64)
-        total = share.sum(1)
-        nodes = np.nonzero(total > 0)[0]
-        alpha = share[nodes] / total[nodes, None]
-        ny, nz = self._ny, self._nz
-        X = np.stack([nodes // (ny * nz), (nodes // nz) % ny, nodes % nz], axis=1) * self._dx
-        modes = []
-        for o in range(n_org):
-            a = alpha[:, o]
-            if a.sum() == 0:
-                continue
-            c = (X * a[:, None]).sum(0) / a.sum()
-            R = X - c
-            L = max(float(np.sqrt((a * (R**2).sum(1)).sum() / a.sum())), self._dx)
-            for k in range(3):
-                e = np.zeros(3)
-                e[k] = 1.0
-                modes.append(a[:, None] * e)
-                modes.append(a[:, None] * np.cross(e, R) / L)
-        Z = np.stack(modes, axis=1).astype(np.float32)  # (n_active, k, 3)
+        """The coarse space of the two-level preconditioner (:class:`~warpmpm.solvers.coarse_space.CoarseSpace`): each
+        organ's rigid motions (3 translations, 3 rotations about its centre) on the nodes its particles touch, weighed by
+        its share of each node's mass; and the coarse matrix ``E = Z^T A Z`` (one matrix-vector product per mode),
+        inverted on the host in float64."""
+        d, nn = self.model.device, self.n_nodes
+        table = self.coarse_space.table(state.x)
+        nodes = table["nodes"]
+        Z = self.coarse_space.dense_modes(table).astype(np.float32)  # (n_active, k, 3)
         k = Z.shape[1]
         AZ = np.empty_like(Z, dtype=np.float64)
         v = self._r  # scratch: the CG that follows starts by overwriting r; the products' sums (partial) are cleared there too
@@ -311,8 +295,7 @@ class QuasiStaticSolver:
             AZ[:, j] = self._Ap.numpy()[nodes]
         E = np.einsum("ajc,alc->jl", Z.astype(np.float64), AZ)
         E = 0.5 * (E + E.T)
-        self._coarse_nodes = wp.array(nodes.astype(np.int32), dtype=int, device=d)
-        self._coarse_Z = wp.array(Z, dtype=wp.vec3, device=d)
+        self._coarse = self.coarse_space.device_table(table)
         self._coarse_E_inv = wp.array(np.linalg.pinv(E, rcond=1e-10), dtype=wp.float64, device=d)
         self._coarse_t = wp.zeros(k, dtype=wp.float64, device=d)
         self._coarse_y = wp.zeros(k, dtype=wp.float64, device=d)
@@ -362,7 +345,7 @@ class QuasiStaticSolver:
             wp.launch(inverse_diagonal, self._active.shape[0], [self._active, self.diag, self.node_mass, k_reg, self.inv_diag], device=d)
             # Jacobi alone first: a frame that starts near its equilibrium (a predicted tracker frame) is solved before
             # the coarse level would have been built (one operator application per mode)
-            self._coarse_nodes = None
+            self._coarse = None
             cap = cfg.max_cg_iterations if max_cg_iterations is None else int(max_cg_iterations)
             n_cg, done = self._conjugate_gradient(state, k_reg, min(COARSE_AFTER, cap) if cfg.coarse_modes == "rigid" else cap)
             if not done and cfg.coarse_modes == "rigid" and cap > COARSE_AFTER:

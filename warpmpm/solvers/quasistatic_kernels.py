@@ -7,8 +7,7 @@ from . import explicit_kernels as kernels
 
 __all__ = ["node_index", "internal_and_drive_forces", "add_copies", "apply_stiffness", "finish_matvec",
            "inverse_diagonal", "RZ", "PAP", "RZ_NEXT", "RR", "RR_LAST", "RZ_LAST", "DOT_SLOTS", "add_partial",
-           "cg_reduce", "cg_start", "cg_dot", "coarse_restrict", "coarse_solve", "coarse_prolong", "organ_node_mass",
-           "cg_advance", "cg_direction", "cg_next", "move_particles", "update_multipliers"]
+           "cg_reduce", "cg_start", "cg_dot", "coarse_solve", "cg_advance", "cg_direction", "cg_next", "move_particles", "update_multipliers"]
 
 # forward kernels only, no adjoints to compile (why: warpmpm.solvers.explicit_kernels)
 wp.set_module_options({"enable_backward": False})
@@ -232,16 +231,6 @@ def cg_dot(nodes: wp.array(dtype=int), r: wp.array(dtype=wp.vec3), z: wp.array(d
 
 
 @wp.kernel
-def coarse_restrict(Z: wp.array(dtype=wp.vec3, ndim=2), nodes: wp.array(dtype=int), r: wp.array(dtype=wp.vec3),
-                    t: wp.array(dtype=wp.float64)):
-    """``t += Z^T r`` over the nodes particles touch (``Z[a, j]``: mode j at node ``nodes[a]``)."""
-    a = wp.tid()
-    ri = r[nodes[a]]
-    for j in range(Z.shape[1]):
-        wp.atomic_add(t, j, wp.float64(wp.dot(Z[a, j], ri)))
-
-
-@wp.kernel
 def coarse_solve(E_inv: wp.array(dtype=wp.float64, ndim=2), t: wp.array(dtype=wp.float64), y: wp.array(dtype=wp.float64)):
     """``y = E^-1 t`` (one thread a coarse unknown), then the next restriction may start afresh in ``t``."""
     j = wp.tid()
@@ -249,32 +238,6 @@ def coarse_solve(E_inv: wp.array(dtype=wp.float64, ndim=2), t: wp.array(dtype=wp
     for l in range(E_inv.shape[1]):
         acc += E_inv[j, l] * t[l]
     y[j] = acc
-
-
-@wp.kernel
-def coarse_prolong(Z: wp.array(dtype=wp.vec3, ndim=2), nodes: wp.array(dtype=int), y: wp.array(dtype=wp.float64),
-                   z: wp.array(dtype=wp.vec3)):
-    """``z += Z y``: the coarse correction added to the Jacobi one (a two-level additive preconditioner)."""
-    a = wp.tid()
-    acc = wp.vec3(0.0)
-    for j in range(Z.shape[1]):
-        acc += float(y[j]) * Z[a, j]
-    i = nodes[a]
-    z[i] = z[i] + acc
-
-
-@wp.kernel
-def organ_node_mass(x: wp.array(dtype=wp.vec3), mass: wp.array(dtype=float), organ: wp.array(dtype=int), dx: float, ny: int, nz: int,
-                    out: wp.array(dtype=float, ndim=2)):
-    """``out[node, organ]``: each organ's share of the nodal mass (kg)."""
-    p = wp.tid()
-    inv_dx = 1.0 / dx
-    base, fx, wx, wy, wz = kernels.stencil(x[p], inv_dx)
-    o = organ[p]
-    for a in range(3):
-        for b in range(3):
-            for cc in range(3):
-                wp.atomic_add(out, node_index(base[0] + a, base[1] + b, base[2] + cc, ny, nz), o, wx[a] * wy[b] * wz[cc] * mass[p])
 
 
 @wp.kernel

@@ -57,27 +57,20 @@ import numpy as np
 import warp as wp
 
 from ..errors import InputError
-from ..model import ParticleModel
 from . import parallel
-from .config import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASES
+from .coarse_space import AGGREGATE_MM, NODE_GROUPS, CoarseSpace, aggregate_groups, basis
+from .config import RIGID_MODE_BASES
 from .grid import MPMModel, State, cpu_threads
 from .rigid_modes_kernels import (SLOTS, coarse_expand, coarse_guard, coarse_project, energy_blocks, prolong_velocity,
                                   reduce_slots, restrict_force)
 
-__all__ = ["RigidModeAccelerator", "aggregate_groups", "TARGET_FACTOR", "AGGREGATE_MM", "MAX_BOOST"]
+__all__ = ["RigidModeAccelerator", "TARGET_FACTOR", "MAX_BOOST", "MIN_BOOST", "GUARD_GROWTH", "GUARD_STEPS"]
 
 #: the target frequency of the coarse modes, ``omega_t = TARGET_FACTOR * pi c / L`` (c: the scaled wave speed the time
 #: step uses; L: the scene's largest extent): the slowest deformation of the body, so a coarse mode is brought up to the
 #: body's own pace (measured with whole organs as groups on the resolution-3 phantom: 2 and 4 gave 1,300 steps against
 #: 1,500; a target from the shear wave speed instead, 25 mm cubes: 3,100 steps against 800)
 TARGET_FACTOR = 1.0
-
-#: edge of the cubes each organ is cut into for the coarse space (mm): :data:`warpmpm.solvers.config.RIGID_MODE_AGGREGATE_MM`
-AGGREGATE_MM = RIGID_MODE_AGGREGATE_MM
-
-#: a cube holding fewer particles than this joins the nearest larger one of its organ (a sliver of a few particles has
-#: almost no mass and would make the coarse mass matrix nearly singular)
-MIN_GROUP_PARTICLES = 50
 
 #: the largest boost of a coarse mode (a mode with no stiffness at all, a group nothing holds, would get an infinite
 #: one; its force is zero, so the cap only keeps rounding noise from being amplified without bound)
@@ -88,9 +81,6 @@ MAX_BOOST = 1.0e4
 #: no steps from them (FEM blocks, settled: 400-700 steps either way, at 1.3-1.5x the time).
 MIN_BOOST = 100.0
 
-#: the most groups a grid node keeps (the largest shares; the rest are dropped from ``Z`` everywhere alike)
-NODE_GROUPS = 8
-
 #: the guard against an unstable coarse level: the coarse velocity change growing by more than ``GUARD_GROWTH`` a step
 #: for ``GUARD_STEPS`` steps in a row switches the correction off for the rest of the frame. A boosted mode swings at
 #: ``omega_t`` (``omega_t dt`` 0.04 on the default phantom), so its force changes by a few % a step; 20 % a step for 6
@@ -98,75 +88,6 @@ NODE_GROUPS = 8
 GUARD_GROWTH = 1.2
 GUARD_STEPS = 6
 
-
-
-def aggregate_groups(particles: ParticleModel, size_mm: float | None = AGGREGATE_MM) -> np.ndarray:
-    """A group index per particle: each organ cut into cubes of ``size_mm`` (from its own bounding box), a cube with
-    fewer than :data:`MIN_GROUP_PARTICLES` particles merged into the nearest kept cube of the same organ (by centroid);
-    ``size_mm`` None: one group per organ."""
-    if size_mm is not None and not (isinstance(size_mm, (int, float)) and math.isfinite(size_mm) and size_mm > 0):
-        raise InputError(f"aggregate size must be a finite number of mm > 0 (or None: whole organs), got {size_mm!r}")
-    groups = np.zeros(particles.n, dtype=np.int32)
-    nxt = 0
-    for o in range(len(particles.organs)):
-        idx = np.nonzero(particles.organ_index == o)[0]
-        if idx.size == 0:
-            continue
-        if size_mm is None:
-            groups[idx] = nxt
-            nxt += 1
-            continue
-        x = particles.positions_mm[idx]
-        cube = np.floor((x - x.min(0)) / size_mm).astype(np.int64)
-        _, label = np.unique(cube, axis=0, return_inverse=True)
-        label = label.ravel()
-        count = np.bincount(label)
-        kept = np.nonzero(count >= MIN_GROUP_PARTICLES)[0]
-        if kept.size == 0:
-            kept = np.array([int(np.argmax(count))])
-        centres = np.stack([x[label == c].mean(0) for c in kept])
-        own = np.full(count.size, -1)
-        own[kept] = np.arange(kept.size)
-        mine = own[label]
-        lone = mine < 0
-        if lone.any():
-            mine[lone] = np.argmin(((x[lone, None, :] - centres[None]) ** 2).sum(2), axis=1)
-        groups[idx] = nxt + mine
-        nxt += kept.size
-    return groups
-
-
-def _basis(affine: bool) -> tuple[np.ndarray, np.ndarray]:
-    """``(a, A)`` of the coarse modes of one group, mode ``c`` at ``y = (x - centre) / L`` being ``a_c + A_c y``:
-    translations ``e_k``, then rotations ``e_k x y`` (rigid) or the affine ``e_k y_l``."""
-    S = 12 if affine else 6
-    a = np.zeros((S, 3))
-    A = np.zeros((S, 3, 3))
-    for k in range(3):
-        a[k, k] = 1.0
-        e = np.eye(3)[k]
-        if affine:
-            for l in range(3):
-                A[3 + 3 * k + l, k, l] = 1.0
-        else:
-            A[3 + k] = np.cross(e, np.eye(3))  # (e_k x y) = A y: column l is e_k x e_l
-            A[3 + k] = A[3 + k].T
-    return a, A
-
-
-def _stencils(x_m: np.ndarray, dx: float, grid_shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each particle's 27 stencil nodes (flat index), weights and offsets ``x_i - x_p`` (m), as :func:`kernels.stencil`."""
-    inv = 1.0 / dx
-    base = (x_m * inv - 0.5).astype(np.int64)
-    fx = x_m * inv - base
-    w1 = np.stack([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1.0) ** 2, 0.5 * (fx - 0.5) ** 2], axis=1)  # (n, 3 nodes, 3 axes)
-    off = np.array([(a, b, c) for a in range(3) for b in range(3) for c in range(3)])
-    w = w1[:, off[:, 0], 0] * w1[:, off[:, 1], 1] * w1[:, off[:, 2], 2]
-    r = (off[None, :, :] - fx[:, None, :]) * dx
-    ijk = base[:, None, :] + off[None]
-    ny, nz = grid_shape[1], grid_shape[2]
-    flat = (ijk[..., 0] * ny + ijk[..., 1]) * nz + ijk[..., 2]
-    return flat, w, r
 
 
 class RigidModeAccelerator:
@@ -194,9 +115,11 @@ class RigidModeAccelerator:
         self.model = model
         #: the group of each particle whose motions form the coarse space
         self.groups = aggregate_groups(model.particles, aggregate_mm)
-        self.n_groups = int(self.groups.max()) + 1
-        self.affine = modes == "affine"
-        self.stride = 12 if self.affine else 6
+        #: the coarse space: the groups' rigid or affine motions on the grid (shared with the quasi-static solver)
+        self.space = CoarseSpace(model, self.groups, modes)
+        self.n_groups = self.space.n_groups
+        self.affine = self.space.affine
+        self.stride = self.space.stride
         self.target_factor = float(target_factor)
         size_m = float(np.max(np.ptp(model.particles.positions_mm, axis=0))) * 1e-3
         #: the coarse modes' target frequency (rad/s): the slowest deformation of the body, ``pi c / L``
@@ -246,48 +169,14 @@ class RigidModeAccelerator:
         G, S = self.n_groups, self.stride
         K = G * S
         nn = int(np.prod(m.grid_shape))
-        x = state.x.numpy().astype(np.float64)
         mass = m.mass_kg.astype(np.float64)
-        flat, w, r = _stencils(x, dx, m.grid_shape)
         n = m.n
-        grp = self.groups
-        # the node table: each group's share of each node's mass
-        key = (flat * G + grp[:, None]).ravel()
-        uk, inv = np.unique(key, return_inverse=True)
-        gm = np.bincount(inv.ravel(), weights=(w * mass[:, None]).ravel())
-        node_of, group_of = uk // G, (uk % G).astype(np.int64)
-        nodes, node_pos = np.unique(node_of, return_inverse=True)
-        node_pos = node_pos.ravel()
-        node_mass = np.bincount(node_pos, weights=gm)
-        share = gm / node_mass[node_pos]
-        ijk = np.stack([nodes // (m.grid_shape[1] * m.grid_shape[2]), (nodes // m.grid_shape[2]) % m.grid_shape[1],
-                        nodes % m.grid_shape[2]], axis=1)
-        wall = m.config.wall_cells
-        inside = np.all((ijk >= wall) & (ijk < np.asarray(m.grid_shape) - wall), axis=1)
-        share[~inside[node_pos]] = 0.0
-        # keep the NODE_GROUPS largest shares of each node
-        order = np.lexsort((-share, node_pos))
-        rank = np.empty_like(order)
-        first = np.r_[0, np.flatnonzero(np.diff(node_pos[order])) + 1]
-        counts = np.diff(np.r_[first, order.size])
-        rank[order] = np.arange(order.size) - np.repeat(first, counts)
-        share[rank >= NODE_GROUPS] = 0.0
+        t = self.space.table(state.x)
+        nodes, node_pos, group_of, share = t["nodes"], t["node_pos"], t["group_of"], t["share"]
+        node_group, node_share, node_mass, Xn = t["node_group"], t["node_share"], t["node_mass"], t["Xn"]
+        centre, radius, flat, w, r = t["centre"], t["radius"], t["flat"], t["w"], t["r"]
         na = nodes.size
-        node_group = np.zeros((na, NODE_GROUPS), dtype=np.int32)
-        node_share = np.zeros((na, NODE_GROUPS), dtype=np.float64)
-        sel = rank < NODE_GROUPS
-        node_group[node_pos[sel], rank[sel]] = group_of[sel]
-        node_share[node_pos[sel], rank[sel]] = share[sel]
-        Xn = ijk * dx
-        # each group's centre and radius of gyration over the nodes it has a share of
-        wsum = np.bincount(group_of, weights=share, minlength=G)
-        if np.any(wsum <= 0):
-            raise InputError("rigid-mode acceleration: a group of particles has no grid node of its own (all in the wall "
-                             "layer?); increase SolverConfig.margin_mm or turn it off")
-        centre = np.stack([np.bincount(group_of, weights=share * Xn[node_pos, c], minlength=G) for c in range(3)], axis=1) / wsum[:, None]
-        d2 = ((Xn[node_pos] - centre[group_of]) ** 2).sum(1)
-        radius = np.maximum(np.sqrt(np.bincount(group_of, weights=share * d2, minlength=G) / wsum), dx)
-        a_c, A_c = _basis(self.affine)
+        a_c, A_c = basis(self.affine)
         # M_c: per (node, group) the mode values Z = s (a + A y); pairs of groups at a node
         y_ng = (Xn[node_pos] - centre[group_of]) / radius[group_of, None]
         Zv = share[:, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y_ng))  # (entries, S, 3)

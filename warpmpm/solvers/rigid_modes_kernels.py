@@ -3,6 +3,8 @@ motions, the boosted coarse modes' projection and expansion, the guard, prolongi
 
 import warp as wp
 
+from .coarse_space_kernels import group_velocity, mode_coefficient, node_offset
+
 __all__ = ["SLOTS", "node_ijk", "restrict_force", "reduce_slots", "coarse_project", "coarse_expand", "coarse_guard",
            "prolong_velocity", "energy_blocks"]
 
@@ -30,27 +32,19 @@ def restrict_force(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int, n
     active node, from node ``first`` on (a launch per CPU thread over its own band of ``SLOTS`` slots)."""
     a = first + wp.tid()
     n = nodes[a]
-    ijk = node_ijk(n, force_sum.shape[1], force_sum.shape[2])
+    ny = force_sum.shape[1]
+    nz = force_sum.shape[2]
+    ijk = node_ijk(n, ny, nz)
     f = force_sum[ijk[0], ijk[1], ijk[2]]
-    xi = wp.vec3(float(ijk[0]), float(ijk[1]), float(ijk[2])) * dx
     slot = slot0 + a % SLOTS
     stride = 6 + 6 * affine
     for q in range(node_share.shape[1]):
         s = node_share[a, q]
         if s > 0.0:
             g = node_group[a, q]
-            t = s * f
-            y = (xi - centre[g]) * inv_len[g]
-            for c in range(3):
-                wp.atomic_add(slots, stride * g + c, slot, t[c])
-            if affine == 0:
-                m = wp.cross(y, t)
-                for c in range(3):
-                    wp.atomic_add(slots, stride * g + 3 + c, slot, m[c])
-            else:
-                for r in range(3):
-                    for c in range(3):
-                        wp.atomic_add(slots, stride * g + 3 + 3 * r + c, slot, t[r] * y[c])
+            y = node_offset(n, ny, nz, dx, centre[g], inv_len[g])
+            for c in range(stride):
+                wp.atomic_add(slots, stride * g + c, slot, mode_coefficient(s * f, y, c, affine))
 
 
 @wp.kernel
@@ -116,8 +110,9 @@ def prolong_velocity(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int,
     if guard[2] == 0.0:
         return
     n = nodes[a]
-    ijk = node_ijk(n, grid_v.shape[1], grid_v.shape[2])
-    xi = wp.vec3(float(ijk[0]), float(ijk[1]), float(ijk[2])) * dx
+    ny = grid_v.shape[1]
+    nz = grid_v.shape[2]
+    ijk = node_ijk(n, ny, nz)
     dv = wp.vec3(0.0)
     hit = int(0)
     stride = 6 + 6 * affine
@@ -125,15 +120,7 @@ def prolong_velocity(nodes: wp.array(dtype=int), node_group: wp.array(dtype=int,
         s = node_share[a, q]
         if s > 0.0:
             g = node_group[a, q]
-            b = stride * g
-            r = (xi - centre[g]) * inv_len[g]
-            v = wp.vec3(y[b], y[b + 1], y[b + 2])
-            if affine == 0:
-                v += wp.cross(wp.vec3(y[b + 3], y[b + 4], y[b + 5]), r)
-            else:
-                Y = wp.mat33(y[b + 3], y[b + 4], y[b + 5], y[b + 6], y[b + 7], y[b + 8], y[b + 9], y[b + 10], y[b + 11])
-                v += Y * r
-            dv += s * v
+            dv += s * group_velocity(y, stride * g, node_offset(n, ny, nz, dx, centre[g], inv_len[g]), affine)
             hit = 1
     if hit != 0:
         dv = damping[0] * dv
