@@ -33,7 +33,7 @@ from warpmpm.targets import affine_targets
 from warpmpm.groundtruth import paper_affine, paper_ground_truth
 from warpmpm.metrics import evaluate
 from warpmpm.experiment import CaseConfig, prepare_case
-from warpmpm.solvers import SolverConfig
+from warpmpm.solvers import GridConfig, SolverConfig
 
 
 # The settings before issue 9's tuning (CFL 0.3, damping factor 1, the paper's TH_D 4): kept as a
@@ -49,7 +49,7 @@ def frame(prep, gt, organs, step, ppc, th_d, device, legacy=False):
     A = paper_affine(gt.params["deformation"])
     idx, tg = affine_targets(model, model.positions_mm, sl, [InPlaneAffine(A)], prep.centre_mm)
     extra = LEGACY if legacy else {}
-    est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(particles_per_cell=ppc, device=device, **extra),
+    est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(device=device, **extra, grid=GridConfig(particles_per_cell=ppc)),
                                convergence=ConvergenceConfig(th_d=th_d), extra_points_mm=np.vstack([tg, gt_pos]))
     res = est.estimate(tg)
     pan = model.organ_slice("pancreas")

@@ -36,15 +36,15 @@ from warpmpm.driving import ConvergenceConfig, DriveConfig, SliceDrivenEstimator
 from warpmpm.fem import fem_displacement_mm
 from warpmpm.scenes import block_model, inclusion_model, merge_models
 from warpmpm.slices import DrivingSlice, InPlaneAffine
-from warpmpm.solvers import SolverConfig
+from warpmpm.solvers import AccelerationConfig, ExplicitConfig, GridConfig, SolverConfig
 from warpmpm.targets import affine_targets
 
 A = math.radians(3.0)
 LOADS = {"scale 1.05": InPlaneAffine(np.eye(2) * 1.05),
          "rotation 3 deg": InPlaneAffine([[math.cos(A), -math.sin(A)], [math.sin(A), math.cos(A)]]),
          "shear 3 deg": InPlaneAffine([[1.0, math.tan(A)], [0.0, 1.0]])}
-FIXED = SolverConfig(device="cpu", damping_rule="fixed")  # the damping before the fourth session: fixed, factor 4
-ADAPTIVE = SolverConfig(device="cpu", damping_rule="adaptive")
+FIXED = SolverConfig(device="cpu", explicit=ExplicitConfig(damping_rule="fixed"))  # the damping before the fourth session: fixed, factor 4
+ADAPTIVE = SolverConfig(device="cpu", explicit=ExplicitConfig(damping_rule="adaptive"))
 SETTLED = ConvergenceConfig(wait_settled=True, max_steps=20000)
 PID, PD = DriveConfig(ki_ratio=0.02), DriveConfig(ki_ratio=0.0)
 #: (name, solver, stopping rule, drive): the defaults first, then what each change of the settled mode does alone
@@ -60,7 +60,7 @@ SOLVERS = [("settled, explicit (adaptive damping, PD)", SolverConfig(device="cpu
            ("quasi-static (Newton / CG)", SolverConfig(device="cpu", method="quasistatic"), ConvergenceConfig(), None)]
 
 #: the settled mode without and with its rigid-mode acceleration (``--acceleration``)
-ACCELERATION = [("settled, no acceleration", SolverConfig(device="cpu", rigid_mode_acceleration="off"), SETTLED, None),
+ACCELERATION = [("settled, no acceleration", SolverConfig(device="cpu", acceleration=AccelerationConfig(mode="off")), SETTLED, None),
                 ("settled, rigid-mode acceleration (default)", SolverConfig(device="cpu"), SETTLED, None)]
 
 
@@ -117,7 +117,7 @@ def main(argv=None):
     p.add_argument("--quasistatic", action="store_true", help="only the settled mode's explicit solver against the quasi-static one")
     p.add_argument("--acceleration", action="store_true", help="only the settled mode with and without its rigid-mode acceleration")
     p.add_argument("--affine", action="store_true",
-                   help="--acceleration: add a column with the coarse space's affine cube motions (SolverConfig.rigid_mode_basis)")
+                   help="--acceleration: add a column with the coarse space's affine cube motions (AccelerationConfig.basis)")
     p.add_argument("--fem-convergence", action="store_true",
                    help="the FEM on the particles' mesh against finer ones (--levels), and the settled MPM against each")
     p.add_argument("--levels", default="1,2", help="--fem-convergence: mesh refinements (1,2 or 1,2,3: with three, the "
@@ -139,7 +139,7 @@ def main(argv=None):
         p.error("--affine adds a column to --acceleration's table; give both")
     rules = SOLVERS if a.quasistatic else ACCELERATION if a.acceleration else RULES
     if a.acceleration and a.affine:
-        rules = rules + [("settled, affine cube motions", SolverConfig(device="cpu", rigid_mode_basis="affine"), SETTLED, None)]
+        rules = rules + [("settled, affine cube motions", SolverConfig(device="cpu", acceleration=AccelerationConfig(basis="affine")), SETTLED, None)]
     ratio_name = "quasi-static / explicit" if a.quasistatic else "with / without" if a.acceleration else None
     rows = []
     print("| scene | load | " + " | ".join(r[0] for r in rules) + (f" | time, {ratio_name} |" if ratio_name else " |"))
@@ -231,7 +231,7 @@ def ppc_sweep(size):
           "through-plane mm | far half: through-plane mm | FEM there mm |")
     print("|---|---|---|---|---|---|---|---|")
     for ppc in (1.0, 2.0, 4.0, 8.0):
-        rule = ("settled", SolverConfig(device="cpu", particles_per_cell=ppc), SETTLED, None)
+        rule = ("settled", SolverConfig(device="cpu", grid=GridConfig(particles_per_cell=ppc)), SETTLED, None)
         r = compare(model, LOADS["scale 1.05"], rule)
         near, far = r["by_layer_distance"][1], r["by_layer_distance"][max(r["by_layer_distance"])]
         rows.append({"particles_per_cell": ppc, **r})

@@ -29,7 +29,7 @@ from warpmpm.experiment import raw_numbers as raw
 import warp as wp
 
 from warpmpm.scenes import block_model, merge_models
-from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
+from warpmpm.solvers import ExplicitConfig, MPMModel, MPMSolver, SolverConfig
 
 
 def scene(n_target: int):
@@ -50,7 +50,7 @@ def bytes_per_particle(m: MPMModel, s: MPMSolver, states) -> float:
 
 
 def time_warp(pm, device: str, steps: int, threads: int | None = None):
-    m = MPMModel(pm, SolverConfig(device=device, check_every=10**9, cpu_threads=threads))  # no NaN read-back in the timed steps
+    m = MPMModel(pm, SolverConfig(device=device, cpu_threads=threads, explicit=ExplicitConfig(check_every=10**9)))  # no NaN read-back in the timed steps
     s = MPMSolver(m)
     a, b = m.state(), m.state()
     F0 = np.diag([0.95, 1.0, 1.0]).astype(np.float32)

@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from warpmpm.scenes import block_model, merge_models
-from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
+from warpmpm.solvers import ExplicitConfig, MPMModel, MPMSolver, SolverConfig
 
 
 class Example:
@@ -26,7 +26,7 @@ class Example:
         stiff = block_model((voxels,) * 3, (2.0, 2.0, 2.0), "duodenum", origin_mm=(2.0 * voxels, 0.0, 0.0))
         self.particles = merge_models(soft, stiff)
         # no grid damping, so that momentum = impulse holds exactly (the estimator damps toward rest)
-        self.model = MPMModel(self.particles, SolverConfig(device=device, damping_per_s=0.0))
+        self.model = MPMModel(self.particles, SolverConfig(device=device, explicit=ExplicitConfig(damping_per_s=0.0)))
         self.solver = MPMSolver(self.model)
         self.state_0, self.state_1 = self.model.state(), self.model.state()
         # a constant force on the soft block's far (x = 0) face, toward the stiff block (N)

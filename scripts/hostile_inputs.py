@@ -131,8 +131,8 @@ def cases(d):
         ("sweep: workers 0", w + ["sweep", "--workers", "0", "--out", f"{d}/s.csv"], "error"),
         ("multi: top 0", w + ["multi", "--top", "0", "--out", f"{d}/m.csv"], "error"),
         ("train: missing CSV", w + ["train", f"{d}/nope.csv"], "error"),
-        ("cfl 3 (API)", ["python", "-c", "from warpmpm.solvers import SolverConfig; SolverConfig(cfl=3)"], "error"),
-        ("cfl 0 (API)", ["python", "-c", "from warpmpm.solvers import SolverConfig; SolverConfig(cfl=0)"], "error"),
+        ("cfl 3 (API)", ["python", "-c", "from warpmpm.solvers import ExplicitConfig; ExplicitConfig(cfl=3)"], "error"),
+        ("cfl 0 (API)", ["python", "-c", "from warpmpm.solvers import ExplicitConfig; ExplicitConfig(cfl=0)"], "error"),
         ("quasi-static with sliding contact", run + ["--solver", "quasistatic", "--contact", "sliding"], "error"),
         ("threads 0", run + ["--threads", "0"], "error"),
         ("auto solver with sliding contact", run + ["--solver", "auto", "--contact", "sliding"], "error"),
@@ -151,19 +151,19 @@ def cases(d):
                                     "from warpmpm.solvers import MPMModel, SolverConfig; "
                                     "MPMModel(block_model((3,3,3)), SolverConfig(device='cpu'), np.full((1,3), np.nan))"], "error"),
         ("cell smaller than the slice gap (API)", ["python", "-c", "from warpmpm.images import *; import numpy as np; "
-                                                   "from warpmpm.model import build_model; from warpmpm.solvers import MPMModel, SolverConfig; "
+                                                   "from warpmpm.model import build_model; from warpmpm.solvers import GridConfig, MPMModel, SolverConfig; "
                                                    "l=np.zeros((10,20,20),np.int32); l[2:8,4:16,4:16]=10; "
                                                    "m=build_model(Case(l, Geometry((20,20,10),(0.8,0.8,5.0),(0,0,0)), PRESETS['amos']), 'p', lattice='voxel'); "
-                                                   "MPMModel(m, SolverConfig(device='cpu', cell_size_mm=1.0))"], "error"),
-        ("less than one particle layer a cell (API)", ["python", "-c", "from warpmpm.solvers import SolverConfig; "
-                                                       "SolverConfig(min_layers_per_cell=0.5)"], "error"),
-        ("an unknown rigid-mode acceleration (API)", ["python", "-c", "from warpmpm.solvers import SolverConfig; "
-                                                      "SolverConfig(rigid_mode_acceleration='yes')"], "error"),
+                                                   "MPMModel(m, SolverConfig(device='cpu', grid=GridConfig(cell_size_mm=1.0)))"], "error"),
+        ("less than one particle layer a cell (API)", ["python", "-c", "from warpmpm.solvers import GridConfig; "
+                                                       "GridConfig(min_layers_per_cell=0.5)"], "error"),
+        ("an unknown rigid-mode acceleration (API)", ["python", "-c", "from warpmpm.solvers import AccelerationConfig; "
+                                                      "AccelerationConfig(mode='yes')"], "error"),
         ("rigid-mode acceleration forced on with sliding contact (API)",
-         ["python", "-c", "from warpmpm.solvers import SolverConfig; SolverConfig(rigid_mode_acceleration='on', contact='sliding')"],
+         ["python", "-c", "from warpmpm.solvers import *; SolverConfig(acceleration=AccelerationConfig(mode='on'), explicit=ExplicitConfig(contact='sliding'))"],
          "error"),
-        ("a negative rigid-mode cube (API)", ["python", "-c", "from warpmpm.solvers import SolverConfig; "
-                                              "SolverConfig(rigid_mode_aggregate_mm=-5.0)"], "error"),
+        ("a negative rigid-mode cube (API)", ["python", "-c", "from warpmpm.solvers import AccelerationConfig; "
+                                              "AccelerationConfig(aggregate_mm=-5.0)"], "error"),
         ("make-truth: NaN phantom resolution", w + ["make-truth", "--phantom-resolution", "nan", "--out", f"{d}/mt1"], "error"),
         ("make-truth: negative phantom seed", w + ["make-truth", "--phantom-seed", "-3", "--out", f"{d}/mt2"], "error"),
         ("make-cine: NaN phantom resolution", w + ["make-cine", "--phantom-resolution", "nan", "--out", f"{d}/mc1"], "error"),
@@ -199,8 +199,8 @@ def cases(d):
                                                 "--beam-on", f"{d}/beam.csv", "--cine", f"{d}/cine", "--out", f"{d}/t11"], "error"),
         ("track: --trackrad-centre on a plain cine", w + ["track", "--image", f"{d}/image.nii.gz", "--labels", f"{d}/labels.nii.gz",
                                                          "--trackrad-centre", "1,2,3", "--cine", f"{d}/cine", "--out", f"{d}/t12"], "error"),
-        ("an unknown rigid-mode coarse basis (API)", ["python", "-c", "from warpmpm.solvers import SolverConfig; "
-                                                     "SolverConfig(rigid_mode_basis='quadratic')"], "error"),
+        ("an unknown rigid-mode coarse basis (API)", ["python", "-c", "from warpmpm.solvers import AccelerationConfig; "
+                                                     "AccelerationConfig(basis='quadratic')"], "error"),
     ]
 
 

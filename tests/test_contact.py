@@ -6,7 +6,7 @@ import warp as wp
 
 from warpmpm.errors import InputError
 from warpmpm.scenes import block_model, merge_models
-from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
+from warpmpm.solvers import ExplicitConfig, GridConfig, MPMModel, MPMSolver, SolverConfig
 
 
 def two_stacked_blocks():
@@ -17,7 +17,7 @@ def two_stacked_blocks():
 
 
 def run(pm, contact, forces, steps, damping_per_s=None, friction=0.0, margin_mm=10.0):
-    m = MPMModel(pm, SolverConfig(device="cpu", contact=contact, friction=friction, damping_per_s=damping_per_s, margin_mm=margin_mm))
+    m = MPMModel(pm, SolverConfig(device="cpu", grid=GridConfig(margin_mm=margin_mm), explicit=ExplicitConfig(contact=contact, friction=friction, damping_per_s=damping_per_s)))
     s = MPMSolver(m)
     a, b = m.state(), m.state()
     control = wp.array(forces.astype(np.float32), dtype=wp.vec3, device="cpu")
@@ -81,9 +81,9 @@ def test_momentum_is_conserved_across_the_contact():
 
 def test_contact_options_are_checked():
     with pytest.raises(InputError, match="contact"):
-        SolverConfig(contact="glue")
+        SolverConfig(explicit=ExplicitConfig(contact="glue"))
     with pytest.raises(InputError, match="friction"):
-        SolverConfig(contact="sliding", friction=-0.1)
+        SolverConfig(explicit=ExplicitConfig(contact="sliding", friction=-0.1))
 
 
 def test_bonded_organs_share_a_field_and_the_others_slide():
@@ -93,12 +93,12 @@ def test_bonded_organs_share_a_field_and_the_others_slide():
     b = block_model((4, 4, 3), (2.0, 2.0, 2.0), "duodenum", origin_mm=(0.0, 0.0, 6.0))
     c = block_model((4, 4, 3), (2.0, 2.0, 2.0), "stomach", origin_mm=(0.0, 0.0, 12.0))
     pm = merge_models(merge_models(a, c), b)
-    assert MPMModel(pm, SolverConfig(device="cpu", contact="sliding")).n_fields == 2
-    assert MPMModel(pm, SolverConfig(device="cpu", contact="sliding", bonded=())).n_fields == 3
+    assert MPMModel(pm, SolverConfig(device="cpu", explicit=ExplicitConfig(contact="sliding"))).n_fields == 2
+    assert MPMModel(pm, SolverConfig(device="cpu", explicit=ExplicitConfig(contact="sliding", bonded=()))).n_fields == 3
     assert MPMModel(pm, SolverConfig(device="cpu")).n_fields == 1
-    field = MPMModel(pm, SolverConfig(device="cpu", contact="sliding")).field.numpy()
+    field = MPMModel(pm, SolverConfig(device="cpu", explicit=ExplicitConfig(contact="sliding"))).field.numpy()
     organ = np.asarray(pm.organs)[pm.organ_index]
     assert len(set(field[organ == "pancreas"]) | set(field[organ == "duodenum"])) == 1
     assert set(field[organ == "stomach"]).isdisjoint(field[organ == "pancreas"])
     with pytest.raises(InputError, match="two groups"):
-        SolverConfig(contact="sliding", bonded=(("pancreas", "duodenum"), ("pancreas", "stomach")))
+        SolverConfig(explicit=ExplicitConfig(contact="sliding", bonded=(("pancreas", "duodenum"), ("pancreas", "stomach"))))

@@ -23,7 +23,7 @@ def test_the_experiments_subcommands_take_caseconfigs_defaults():
     for f in ("targets", "registration", "registration_passes", "drive", "max_steps", "plane_check", "organs", "deformation",
               "protocol", "exclude_driven", "rrd_every"):
         assert getattr(built, f) == getattr(cfg, f), f
-    assert built.solver.method == cfg.solver.method and built.solver.contact == cfg.solver.contact
+    assert built.solver.method == cfg.solver.method and built.solver.explicit.contact == cfg.solver.explicit.contact
 
 
 def test_the_trackers_subcommand_takes_trackerconfigs_defaults():

@@ -160,7 +160,7 @@ def test_captured_graph_replays_the_eager_steps_exactly(tiny_model, damping):
     frame after frame; the adaptive damping too (its factor lives on the device, set inside the graph). Both on one
     thread: a captured graph holds whole-array launches, and the eager step split over two threads adds the grid's
     sums in another order (float32 rounding; tests/test_parallel.py)."""
-    solver = replace(CPU, damping_rule=damping, cpu_threads=1)
+    solver = replace(CPU, explicit=replace(CPU.explicit, damping_rule=damping), cpu_threads=1)
     m = tiny_model
     k = int(np.median(m.voxel_ijk[m.organ_slice("pancreas"), 2]))
     sl = [DrivingSlice("axial", k)]

@@ -10,7 +10,7 @@ from warpmpm.errors import InputError
 from warpmpm.fem import fem_displacement_mm
 from warpmpm.scenes import block_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine
-from warpmpm.solvers import SolverConfig
+from warpmpm.solvers import ExplicitConfig, SolverConfig
 from warpmpm.targets import affine_targets
 
 
@@ -99,7 +99,7 @@ def test_adaptive_damping_settles_a_rotated_block_in_a_fraction_of_the_steps():
     m, sl, tg, rel_error = _block_scene((10, 10, 10), 5, InPlaneAffine([[math.cos(A3), -math.sin(A3)], [math.sin(A3), math.cos(A3)]]))
     rel = {}
     for rule in ("adaptive", "fixed"):
-        est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", damping_rule=rule), extra_points_mm=tg,
+        est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", explicit=ExplicitConfig(damping_rule=rule)), extra_points_mm=tg,
                                    convergence=ConvergenceConfig(th_v=1e-12, th_d=12, max_steps=300))
         with pytest.warns(RuntimeWarning, match="did not converge"):
             res = est.estimate(tg)

@@ -21,7 +21,7 @@ from warpmpm.model import build_model
 from warpmpm.phantom import make_phantom
 from warpmpm.scenes import block_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine, parse_slices
-from warpmpm.solvers import MPMModel, SolverConfig
+from warpmpm.solvers import ExplicitConfig, GridConfig, MPMModel, SolverConfig
 from warpmpm.targets import affine_targets
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
@@ -59,7 +59,7 @@ def test_a_rigid_slice_translation_carries_every_slice_of_a_thick_scan():
     m = build_model(block_case((0.8, 0.8, 5.0)), "p")
     sl = [DrivingSlice("axial", 4)]
     idx, tg = affine_targets(m, m.positions_mm, sl, [InPlaneAffine(np.eye(2), [2.0, 0.0])])
-    est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", damping_factor=1.0), extra_points_mm=tg,
+    est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", explicit=ExplicitConfig(damping_factor=1.0)), extra_points_mm=tg,
                                convergence=ConvergenceConfig(max_steps=5000, wait_settled=True))
     res = est.estimate(tg)
     d = res.positions_mm - m.positions_mm
@@ -72,7 +72,7 @@ def test_the_grid_cell_never_falls_below_the_gap_between_particles():
     m = build_model(block_case((0.8, 0.8, 5.0)), "p", lattice="voxel")
     assert MPMModel(m, CPU).dx_mm >= 5.0
     with pytest.raises(InputError, match="smaller than the 5.00 mm gap"):
-        MPMModel(m, SolverConfig(device="cpu", cell_size_mm=2.0))
+        MPMModel(m, SolverConfig(device="cpu", grid=GridConfig(cell_size_mm=2.0)))
 
 
 def _thick_copy(folder, spacing):
@@ -192,7 +192,7 @@ def test_the_whole_body_is_watched_not_only_the_driven_slice():
     far = m.voxel_ijk[:, 2] >= m.voxel_ijk[:, 2].max() - 2
     early = SliceDrivenEstimator(m, sl, solver_config=CPU, extra_points_mm=tg).estimate(tg)
     assert early.converged and not early.settled and (early.positions_mm - m.positions_mm)[far, 0].mean() < 1.5
-    est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", damping_factor=1.0), extra_points_mm=tg,
+    est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", explicit=ExplicitConfig(damping_factor=1.0)), extra_points_mm=tg,
                                convergence=ConvergenceConfig(max_steps=3000, wait_settled=True))
     late = est.estimate(tg)
     assert late.converged and late.settled and (late.positions_mm - m.positions_mm)[far, 0].mean() > 1.7
@@ -243,13 +243,13 @@ def test_an_output_onto_a_directory_is_refused_before_the_run(tmp_path, capsys, 
 
 def test_solver_settings_are_checked_when_built():
     with pytest.raises(InputError, match="cfl must be a finite number > 0"):
-        SolverConfig(cfl=0)
+        SolverConfig(explicit=ExplicitConfig(cfl=0))
     with pytest.raises(InputError, match="cfl must be a finite number > 0"):
-        SolverConfig(cfl=-0.1)
+        SolverConfig(explicit=ExplicitConfig(cfl=-0.1))
     with pytest.raises(InputError, match="above the stable limit.*time step"):  # the time step, not the margin
-        SolverConfig(cfl=3)
+        SolverConfig(explicit=ExplicitConfig(cfl=3))
     with pytest.raises(InputError, match="margin_mm"):
-        SolverConfig(margin_mm=float("nan"))
+        SolverConfig(grid=GridConfig(margin_mm=float("nan")))
     m = block_model((3, 3, 3), (2, 2, 2), "pancreas")
     bad = np.zeros((2, 3))
     bad[1, 2] = np.nan

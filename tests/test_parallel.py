@@ -6,7 +6,7 @@ import pytest
 from warpmpm.errors import InputError
 from warpmpm.scenes import block_model, merge_models
 from warpmpm.errors import SimulationError
-from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
+from warpmpm.solvers import ExplicitConfig, MPMModel, MPMSolver, SolverConfig
 
 
 def _scene():
@@ -18,7 +18,7 @@ def _scene():
 
 
 def _run(pm, threads, steps, **cfg):
-    m = MPMModel(pm, SolverConfig(device="cpu", cpu_threads=threads, damping_per_s=0.0, **cfg))
+    m = MPMModel(pm, SolverConfig(device="cpu", cpu_threads=threads, explicit=ExplicitConfig(damping_per_s=0.0, **cfg)))
     s = MPMSolver(m)
     assert s.threads == threads
     a, b = m.state(), m.state()
@@ -69,7 +69,7 @@ def test_the_sparse_grid_update_is_the_dense_one_node_for_node(threads):
     pm = _scene()
     out = {}
     for sparse in (True, False, "toggled"):
-        m = MPMModel(pm, SolverConfig(device="cpu", cpu_threads=threads, damping_per_s=0.0, bonded=()))
+        m = MPMModel(pm, SolverConfig(device="cpu", cpu_threads=threads, explicit=ExplicitConfig(damping_per_s=0.0, bonded=())))
         s = MPMSolver(m)
         assert s.sparse_update == (threads == 1)  # the default on a one-thread CPU step
         s.sparse_update = sparse is True
@@ -100,7 +100,7 @@ def test_the_sparse_grid_update_is_the_dense_one_node_for_node(threads):
 def test_the_sparse_update_is_refused_where_there_are_no_block_stamps():
     """Sliding contact keeps a grid per organ and the dense update: asking it for the sparse one is a clear error,
     not an index out of range."""
-    m = MPMModel(_scene(), SolverConfig(device="cpu", contact="sliding", bonded=()))
+    m = MPMModel(_scene(), SolverConfig(device="cpu", explicit=ExplicitConfig(contact="sliding", bonded=())))
     s = MPMSolver(m)
     assert not s.sparse_update
     s.sparse_update = False
@@ -115,7 +115,7 @@ def test_switching_back_to_the_sparse_update_clears_what_the_dense_steps_left():
     pm = _scene()
     grids = {}
     for switch in (False, True):
-        m = MPMModel(pm, SolverConfig(device="cpu", cpu_threads=1, damping_per_s=0.0, bonded=()))
+        m = MPMModel(pm, SolverConfig(device="cpu", cpu_threads=1, explicit=ExplicitConfig(damping_per_s=0.0, bonded=())))
         s = MPMSolver(m)
         s.sparse_update = False
         a, b = m.state(), m.state()

@@ -10,7 +10,7 @@ from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
 from warpmpm.errors import InputError
 from warpmpm.scenes import block_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine
-from warpmpm.solvers import QuasiStaticConfig, SolverConfig
+from warpmpm.solvers import ExplicitConfig, QuasiStaticConfig, SolverConfig
 from warpmpm.targets import affine_targets
 
 from test_fem import A3, _block_scene
@@ -76,7 +76,7 @@ def replace_qs(**kw) -> SolverConfig:
 
 def test_quasistatic_refuses_sliding_contact_and_bad_settings():
     with pytest.raises(InputError, match="sticky contact only"):
-        SolverConfig(method="quasistatic", contact="sliding")
+        SolverConfig(method="quasistatic", explicit=ExplicitConfig(contact="sliding"))
     with pytest.raises(InputError, match="method"):
         SolverConfig(method="implicit")
     for bad in (dict(cg_tolerance=1.5), dict(penalty=0.0), dict(max_newton_iterations=0), dict(settle_mm=float("nan")),
@@ -134,4 +134,4 @@ def test_auto_goes_on_explicitly_where_the_newton_iterations_have_not_settled():
 
 def test_auto_refuses_sliding_contact():
     with pytest.raises(InputError, match="sticky contact only"):
-        SolverConfig(method="auto", contact="sliding")
+        SolverConfig(method="auto", explicit=ExplicitConfig(contact="sliding"))

@@ -14,7 +14,7 @@ from warpmpm.solvers.coarse_space import NODE_GROUPS, aggregate_groups, basis
 from warpmpm.solvers.rigid_modes import RigidModeAccelerator
 from warpmpm.scenes import inclusion_model
 from warpmpm.slices import DrivingSlice, InPlaneAffine
-from warpmpm.solvers import SolverConfig
+from warpmpm.solvers import AccelerationConfig, ExplicitConfig, SolverConfig
 from warpmpm.targets import affine_targets
 
 A = math.radians(3.0)
@@ -33,8 +33,7 @@ def hanging(inclusion):
 
 def settled_error(m, sl, idx, tg, acceleration, basis="rigid"):
     u_fem = fem_displacement_mm(m, idx, tg)
-    est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", rigid_mode_acceleration=acceleration,
-                                                                 rigid_mode_basis=basis),
+    est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", acceleration=AccelerationConfig(mode=acceleration, basis=basis)),
                                convergence=SETTLED, extra_points_mm=tg)
     if acceleration != "off":  # the configured basis is the one the coarse level uses
         assert est.accelerator.affine == (basis == "affine") and est.accelerator.stride == (12 if basis == "affine" else 6)
@@ -84,7 +83,7 @@ def test_the_coarse_matrices_are_the_grid_stiffness_and_mass_of_the_group_motion
     and affine modes, whole organs and 25 mm cubes, with a drive that leaves the through-plane direction free."""
     m = tiny_model
     sl = [DrivingSlice("axial", int(np.median(m.voxel_ijk[m.organ_slice("pancreas"), 2])))]
-    est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", rigid_mode_acceleration="off"),
+    est = SliceDrivenEstimator(m, sl, solver_config=SolverConfig(device="cpu", acceleration=AccelerationConfig(mode="off")),
                                extra_points_mm=np.vstack([m.positions_mm - 5, m.positions_mm + 5]))
     mm = est.mpm
     axes = np.tile(np.diag([1.0, 1.0, 0.0]), (len(est.driven), 1, 1))
@@ -133,14 +132,14 @@ def test_groups_cut_each_organ_into_cubes_and_keep_no_sliver(tiny_model):
 
 
 def test_bad_acceleration_settings_are_refused(tiny_model):
-    with pytest.raises(InputError, match="rigid_mode_acceleration"):
-        SolverConfig(rigid_mode_acceleration="yes")
+    with pytest.raises(InputError, match="AccelerationConfig.mode"):
+        SolverConfig(acceleration=AccelerationConfig(mode="yes"))
     with pytest.raises(InputError, match="sticky contact only"):
-        SolverConfig(rigid_mode_acceleration="on", contact="sliding")
+        SolverConfig(explicit=ExplicitConfig(contact="sliding"), acceleration=AccelerationConfig(mode="on"))
     with pytest.raises(InputError, match="aggregate size"):
         aggregate_groups(tiny_model, -5.0)
-    with pytest.raises(InputError, match="rigid_mode_basis"):
-        SolverConfig(rigid_mode_basis="quadratic")
+    with pytest.raises(InputError, match="AccelerationConfig.basis"):
+        SolverConfig(acceleration=AccelerationConfig(basis="quadratic"))
 
 
 def test_the_guard_switches_an_exponentially_growing_coarse_level_off_and_leaves_a_ringing_one_on():

@@ -6,7 +6,7 @@ import pytest
 from warpmpm.images import InputError
 from warpmpm.scenes import block_model, merge_models
 from warpmpm.errors import SimulationError
-from warpmpm.solvers import MPMModel, MPMSolver, SolverConfig
+from warpmpm.solvers import ExplicitConfig, GridConfig, MPMModel, MPMSolver, SolverConfig
 
 CPU = dict(device="cpu")
 
@@ -36,7 +36,7 @@ def test_rest_stays_at_rest():
 
 def test_momentum_conserved_and_uniform_velocity_translates_rigidly():
     pm = two_blocks()
-    m = MPMModel(pm, SolverConfig(damping_per_s=0.0, **CPU))
+    m = MPMModel(pm, SolverConfig(**CPU, explicit=ExplicitConfig(damping_per_s=0.0)))
     s = MPMSolver(m)
     a, b = m.state(), m.state()
     rng = np.random.default_rng(0)
@@ -64,7 +64,7 @@ def test_fixed_damping_decays_a_rigid_motion_at_its_rate_for_any_step(dt_scale):
     its velocity is v0 exp(-gamma n dt), also when a step is given its own dt (the factor follows the step's
     length; it was computed once for the model's step)."""
     pm = block_model((6, 6, 6), (2, 2, 2), "pancreas")
-    m = MPMModel(pm, SolverConfig(damping_per_s=200.0, damping_rule="fixed", **CPU))
+    m = MPMModel(pm, SolverConfig(**CPU, explicit=ExplicitConfig(damping_per_s=200.0, damping_rule="fixed")))
     s = MPMSolver(m)
     a, b = m.state(), m.state()
     u = np.array([0.02, -0.01, 0.0], dtype=np.float32)
@@ -137,7 +137,7 @@ def test_stiff_contact_stays_finite_for_2000_steps():
     pm = two_blocks()
     # real densities and no damping: the impact is a real collision (under mass scaling the soft block
     # would weigh ~1500x less than the stiff one and barely move it)
-    m = MPMModel(pm, SolverConfig(damping_per_s=0.0, mass_scaling=False, **CPU))
+    m = MPMModel(pm, SolverConfig(**CPU, explicit=ExplicitConfig(damping_per_s=0.0, mass_scaling=False)))
     s = MPMSolver(m)
     a, b = m.state(), m.state()
     v = np.zeros((pm.n, 3), dtype=np.float32)
@@ -192,7 +192,7 @@ def test_forces_at_clamp_limit_stay_finite_and_do_not_wind_up():
 
     pm = block_model((6, 6, 6), (2, 2, 2), "pancreas")
     top = np.nonzero(pm.voxel_ijk[:, 2] == 5)[0]
-    est = SliceDrivenEstimator(pm, driven=top, solver_config=SolverConfig(margin_mm=40, **CPU),
+    est = SliceDrivenEstimator(pm, driven=top, solver_config=SolverConfig(**CPU, grid=GridConfig(margin_mm=40)),
                                drive_config=DriveConfig(), convergence=ConvergenceConfig(max_steps=400, th_s=50))
     targets = pm.positions_mm[top] + np.array([0, 0, 25.0])  # far target: the clamp is active
     res = est.estimate(targets)
@@ -206,8 +206,8 @@ def test_dt_above_limit_refused():
     pm = block_model((4, 4, 4), (2, 2, 2), "duodenum")
     limit = MPMModel(pm, SolverConfig(**CPU)).dt_limit_s
     with pytest.raises(InputError, match="above the stable limit"):
-        MPMModel(pm, SolverConfig(dt_s=limit * 1.5, **CPU))
-    MPMModel(pm, SolverConfig(dt_s=limit * 0.9, **CPU))
+        MPMModel(pm, SolverConfig(**CPU, explicit=ExplicitConfig(dt_s=limit * 1.5)))
+    MPMModel(pm, SolverConfig(**CPU, explicit=ExplicitConfig(dt_s=limit * 0.9)))
 
 
 def test_nan_and_leaving_grid_are_reported():
@@ -270,16 +270,17 @@ def test_polar_rotation_equals_svd_rotation():
     assert np.abs(R.numpy() - u @ vt).max() < 5e-7
 
 
-@pytest.mark.parametrize("kw,msg", [
-    (dict(damping_rule="critical"), "damping_rule must be"),
-    (dict(damping_bounds=(2.0, 4.0)), "damping_bounds must be"),
-    (dict(damping_bounds=(0.1,)), "damping_bounds must be"),
-    (dict(damping_memory_steps=0.5), "damping_memory_steps must be"),
-    (dict(min_layers_per_cell=0.5), "min_layers_per_cell must be"),
+@pytest.mark.parametrize("make,msg", [
+    (lambda: ExplicitConfig(damping_rule="critical"), "ExplicitConfig.damping_rule must be"),
+    (lambda: ExplicitConfig(damping_bounds=(2.0, 4.0)), "damping_bounds must be"),
+    (lambda: ExplicitConfig(damping_bounds=(0.1,)), "damping_bounds must be"),
+    (lambda: ExplicitConfig(damping_memory_steps=0.5), "damping_memory_steps must be"),
+    (lambda: GridConfig(min_layers_per_cell=0.5), "GridConfig.min_layers_per_cell must be"),
+    (lambda: SolverConfig(explicit=dict(cfl=0.5)), "SolverConfig.explicit must be a ExplicitConfig"),
 ])
-def test_bad_damping_options_are_refused(kw, msg):
+def test_bad_solver_options_are_refused(make, msg):
     with pytest.raises(InputError, match=msg):
-        SolverConfig(**kw)
+        make()
 
 
 def test_an_anisotropic_lattice_gets_more_than_one_layer_a_cell_and_the_fem_answer():

@@ -102,8 +102,8 @@ class SliceDrivenEstimator:
 
     def _inside_grid(self, points_mm: np.ndarray) -> bool:
         """Whether every point lies where a particle's stencil stays clear of the grid's wall layer."""
-        lo = self.mpm.origin_mm + (self.mpm.config.wall_cells + 1) * self.mpm.dx_mm
-        hi = self.mpm.origin_mm + (np.asarray(self.mpm.grid_shape) - self.mpm.config.wall_cells - 2) * self.mpm.dx_mm
+        lo = self.mpm.origin_mm + (self.mpm.config.grid.wall_cells + 1) * self.mpm.dx_mm
+        hi = self.mpm.origin_mm + (np.asarray(self.mpm.grid_shape) - self.mpm.config.grid.wall_cells - 2) * self.mpm.dx_mm
         return not (np.any(points_mm < lo) or np.any(points_mm > hi))
 
     def move_to(self, positions_mm: np.ndarray) -> None:
@@ -134,7 +134,7 @@ class SliceDrivenEstimator:
             raise InputError("targets hold a non-finite value")
         if not self._inside_grid(targets_mm):
             raise InputError("targets lie outside the simulation grid; build the estimator with extra_points_mm covering them "
-                             f"or a larger SolverConfig.margin_mm (now {self.mpm.config.margin_mm} mm)")
+                             f"or a larger GridConfig.margin_mm (now {self.mpm.config.grid.margin_mm} mm)")
         nd = len(self.driven)
         if axes is None:
             axes = np.tile(np.eye(3), (nd, 1, 1))

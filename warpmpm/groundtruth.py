@@ -108,10 +108,11 @@ def gt_solver_config(base: SolverConfig | None = None, device: str | None = None
     estimate is solved.
     """
     b = base or SolverConfig(device=device)
-    return replace(b, particles_per_cell=max(1.0, b.particles_per_cell * 0.5),
-                   cell_size_mm=None if b.cell_size_mm is None else b.cell_size_mm * 0.5 ** (1.0 / 3.0),
-                   cfl=min(b.cfl, GT_CFL), dt_s=None, device=b.device or device, cell_at_least_gap=False,
-                   method="explicit")
+    g = b.grid
+    grid = replace(g, particles_per_cell=max(1.0, g.particles_per_cell * 0.5),
+                   cell_size_mm=None if g.cell_size_mm is None else g.cell_size_mm * 0.5 ** (1.0 / 3.0), cell_at_least_gap=False)
+    return replace(b, grid=grid, explicit=replace(b.explicit, cfl=min(b.explicit.cfl, GT_CFL), dt_s=None),
+                   device=b.device or device, method="explicit")
 
 
 def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray, *, perturb: bool, seed: int,
@@ -135,9 +136,9 @@ def simulate_gt(model: ParticleModel, driven: np.ndarray, targets_mm: np.ndarray
         # the cell at least the gap: the rule every protocol's truth was made with. Its finer grid holds 1.16 (phantom)
         # to 1.26 (3 mm samples) layers a cell, outside the one-layer-a-cell mode (docs/decisions/2026-12-03-solver-defaults.md; on a thick-slice
         # block 1.16 layers already give the FEM's answer within 2.8 %, one layer 9.7 %)
-        cfg = replace(cfg, cell_at_least_gap=True, min_layers_per_cell=1.0)
-        if cfg.cell_size_mm is not None and cfg.cell_size_mm < model.max_gap_mm:
-            cfg = replace(cfg, cell_size_mm=model.max_gap_mm)  # the refinement stops at the particles' own gap
+        cfg = replace(cfg, grid=replace(cfg.grid, cell_at_least_gap=True, min_layers_per_cell=1.0))
+        if cfg.grid.cell_size_mm is not None and cfg.grid.cell_size_mm < model.max_gap_mm:
+            cfg = replace(cfg, grid=replace(cfg.grid, cell_size_mm=model.max_gap_mm))  # the refinement stops at the particles' own gap
     # the truth is held to the paper's stricter stopping rule (TH_D = 4), not the estimator's default
     est = SliceDrivenEstimator(gt_model, driven=driven, solver_config=cfg, drive_config=DriveConfig(),
                                convergence=replace(ConvergenceConfig.paper(), max_steps=max_steps, wait_settled=wait_settled),

@@ -110,7 +110,7 @@ def main(argv=None):
     def at(est, s, rel, rms):
         if s == a.step and est.accelerator is not None and est.accelerator.built:
             # the coarse level as a build at this state makes it (a second accelerator: the running one is left alone)
-            acc = RigidModeAccelerator(est.mpm, aggregate_mm=est.mpm.config.rigid_mode_aggregate_mm, modes=est.mpm.config.rigid_mode_basis)
+            acc = RigidModeAccelerator(est.mpm, aggregate_mm=est.mpm.config.acceleration.aggregate_mm, modes=est.mpm.config.acceleration.basis)
             acc.build(est.state, est.driven, est.driven_axes(), est.gains.kp_per_s2)
             keep.update(x0=est.state.x.numpy().astype(np.float64), damping_per_s=est.solver.damping_per_s, acc=acc)
         if s == a.step + a.window and "x0" in keep:

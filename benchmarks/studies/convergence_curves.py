@@ -24,7 +24,7 @@ from warpmpm.slices import InPlaneAffine
 from warpmpm.targets import affine_targets
 from warpmpm.groundtruth import paper_affine, paper_ground_truth
 from warpmpm.experiment import CaseConfig, prepare_case
-from warpmpm.solvers import SolverConfig
+from warpmpm.solvers import ExplicitConfig, SolverConfig
 
 SETTINGS = [(0.3, 1.0), (0.3, 2.0), (0.3, 4.0), (0.3, 8.0), (0.5, 4.0)]  # (CFL, damping factor)
 
@@ -52,7 +52,7 @@ def main(argv=None):
                 if step % a.every == 0:
                     pts.append((step, float(np.linalg.norm(est.positions_mm()[pan] - gt.positions_mm[pan], axis=1).mean())))
 
-            est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(cfl=cfl, damping_factor=factor, device="cpu"),
+            est = SliceDrivenEstimator(model, sl, solver_config=SolverConfig(device="cpu", explicit=ExplicitConfig(cfl=cfl, damping_factor=factor)),
                                        convergence=ConvergenceConfig(max_steps=a.steps, th_s=10**9),
                                        extra_points_mm=np.vstack([tg, gt.positions_mm]), callback=cb)
             with warnings.catch_warnings():

@@ -23,7 +23,7 @@ from warpmpm.driving import DriveConfig
 from warpmpm.experiment.case import prepare_case
 from warpmpm.experiment.config import CaseConfig
 from warpmpm.experiment.truth import make_ground_truth
-from warpmpm.solvers import SolverConfig
+from warpmpm.solvers import ExplicitConfig, SolverConfig
 
 #: (name, damping rule, integral ratio, settled mode); ki None: the drive's default for the stopping rule
 VARIANTS = [("fixed, PID (default)", "auto", None, False), ("adaptive, PID", "adaptive", 0.02, False),
@@ -53,7 +53,7 @@ def main(argv=None):
                 # the drive is chosen inside run_prepared: give it this variant's integral
                 run.SliceDrivenEstimator = lambda *args, _ki=ki, **kw: estimator(*args, drive_config=DriveConfig(ki_ratio=_ki), **kw)
                 try:
-                    cfg = replace(cfg0, solver=SolverConfig(damping_rule=rule), wait_settled=settle,
+                    cfg = replace(cfg0, solver=SolverConfig(explicit=ExplicitConfig(damping_rule=rule)), wait_settled=settle,
                                   max_steps=a.settled_max_steps if settle else cfg0.max_steps)
                     res = run.run_prepared(prep, gt, cfg).to_json()["results"]
                 finally:

@@ -7,7 +7,7 @@ mid-pancreas axial slice scaled 2 % in plane about the volume's centre (small an
 settled mode (``ConvergenceConfig(wait_settled=True)``: adaptive damping, PD drive) with at most ``--max-steps``.
 Variants: ``off`` (no acceleration), ``organs`` (the coarse space of each organ's rigid motions), a number (the
 edge in mm of the cubes each organ is cut into, with their 6 rigid motions), or ``affine`` / ``affineNN`` (25 or NN
-mm cubes with their 12 affine motions: ``SolverConfig.rigid_mode_basis``); the package's default is 25 mm cubes with
+mm cubes with their 12 affine motions: ``AccelerationConfig.basis``); the package's default is 25 mm cubes with
 the basis :data:`warpmpm.solvers.RIGID_MODE_BASIS`. Reported per variant: steps, whether the
 package's own settled rule said settled, wall time (and its ratio to ``off`` in the same run), the time a step (and
 its ratio), the 99th-percentile motion of the last 500 steps (``-`` for a run of fewer than 1,000 steps), and how far the answer lies from the default variant's
@@ -29,7 +29,7 @@ from warpmpm import InPlaneAffine, build_model, make_phantom
 from warpmpm.driving import ConvergenceConfig, SliceDrivenEstimator
 from warpmpm.errors import InputError
 from warpmpm.slices import DrivingSlice
-from warpmpm.solvers import RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASIS, SolverConfig
+from warpmpm.solvers import AccelerationConfig, RIGID_MODE_AGGREGATE_MM, RIGID_MODE_BASIS, SolverConfig
 from warpmpm.targets import affine_targets
 
 SCENES = {"res3": ("phantom resolution 3 mm", dict(resolution=3.0), 1),
@@ -38,12 +38,12 @@ SCENES = {"res3": ("phantom resolution 3 mm", dict(resolution=3.0), 1),
 
 def variant_config(name: str) -> SolverConfig:
     if name.startswith("affine"):  # affineNN: NN mm cubes with the 12 affine motions each
-        return SolverConfig(rigid_mode_aggregate_mm=float(name[6:] or RIGID_MODE_AGGREGATE_MM), rigid_mode_basis="affine")
+        return SolverConfig(acceleration=AccelerationConfig(aggregate_mm=float(name[6:] or RIGID_MODE_AGGREGATE_MM), basis="affine"))
     if name == "off":
-        return SolverConfig(rigid_mode_acceleration="off")
+        return SolverConfig(acceleration=AccelerationConfig(mode="off"))
     if name == "organs":
-        return SolverConfig(rigid_mode_aggregate_mm=None, rigid_mode_basis="rigid")
-    return SolverConfig(rigid_mode_aggregate_mm=float(name), rigid_mode_basis="rigid")
+        return SolverConfig(acceleration=AccelerationConfig(aggregate_mm=None, basis="rigid"))
+    return SolverConfig(acceleration=AccelerationConfig(aggregate_mm=float(name), basis="rigid"))
 
 
 def run(scene: str, variant: str, max_steps: int) -> dict:

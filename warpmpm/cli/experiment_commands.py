@@ -16,7 +16,7 @@ __all__ = ["config_from_args", "cmd_run", "cmd_sweep", "cmd_multi", "cmd_train",
 def config_from_args(a):
     """The :class:`~warpmpm.experiment.config.CaseConfig` of ``warpmpm run``'s options (checked)."""
     from ..experiment.config import CaseConfig
-    from ..solvers import SolverConfig
+    from ..solvers import ExplicitConfig, SolverConfig
 
     step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
     baselines = ("initial", "propagate", "rigid", "completion") + (() if a.no_volume_registration else ("volume_registration",))
@@ -26,7 +26,7 @@ def config_from_args(a):
                       registration=a.registration, registration_passes=a.registration_passes, plane_check=not a.no_plane_check,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
-                      solver=SolverConfig(contact=a.contact, friction=a.friction, method=a.solver, cpu_threads=a.threads))
+                      solver=SolverConfig(method=a.solver, cpu_threads=a.threads, explicit=ExplicitConfig(contact=a.contact, friction=a.friction)))
 
 
 def cmd_run(a) -> int:

@@ -121,7 +121,7 @@ class CaseConfig:
     solver: SolverConfig = field(default_factory=SolverConfig)
     """The estimator's solver settings; the GT refines them (:func:`warpmpm.groundtruth.gt_solver_config`)."""
     gt_contact: Literal["sticky", "sliding"] | None = None
-    """Contact between organs in the ground truth; None: the estimator's (``solver.contact``). A truth with
+    """Contact between organs in the ground truth; None: the estimator's (``solver.explicit.contact``). A truth with
     sliding organs scored against a sticky estimator (and the reverse) measures what the contact model costs."""
 
     gt_wait_settled: bool = False

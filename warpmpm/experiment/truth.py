@@ -30,7 +30,7 @@ def make_ground_truth(prep: PreparedCase, cfg: CaseConfig, callback=None) -> Gro
         gt = field_ground_truth(prep, cfg.truth_field)
         check_inside_imaged_volume(prep, gt)
         return gt
-    solver = cfg.solver if cfg.gt_contact is None else replace(cfg.solver, contact=cfg.gt_contact)
+    solver = cfg.solver if cfg.gt_contact is None else replace(cfg.solver, explicit=replace(cfg.solver.explicit, contact=cfg.gt_contact))
     if cfg.protocol == "paper":
         return paper_ground_truth(prep.full_model, cfg.deformation, literal=cfg.literal, perturb=cfg.perturb,
                                   seed=cfg.phantom_seed, centre_mm=prep.centre_mm, solver_config=solver, device=cfg.device,

@@ -140,7 +140,7 @@ class CoarseSpace:
         share = gm / node_mass[node_pos]
         ijk = np.stack([nodes // (m.grid_shape[1] * m.grid_shape[2]), (nodes // m.grid_shape[2]) % m.grid_shape[1],
                         nodes % m.grid_shape[2]], axis=1)
-        wall = m.config.wall_cells
+        wall = m.config.grid.wall_cells
         inside = np.all((ijk >= wall) & (ijk < np.asarray(m.grid_shape) - wall), axis=1)
         share[~inside[node_pos]] = 0.0
         # keep the NODE_GROUPS largest shares of each node
@@ -161,7 +161,7 @@ class CoarseSpace:
         wsum = np.bincount(group_of, weights=share, minlength=G)
         if np.any(wsum <= 0):
             raise InputError("coarse space: a group of particles has no grid node of its own (all in the wall layer?); "
-                             "increase SolverConfig.margin_mm or turn the coarse level off")
+                             "increase GridConfig.margin_mm or turn the coarse level off")
         centre = np.stack([np.bincount(group_of, weights=share * Xn[node_pos, c], minlength=G) for c in range(3)], axis=1) / wsum[:, None]
         d2 = ((Xn[node_pos] - centre[group_of]) ** 2).sum(1)
         radius = np.maximum(np.sqrt(np.bincount(group_of, weights=share * d2, minlength=G) / wsum), dx)

@@ -1,17 +1,154 @@
-"""The solvers' configurations: :class:`SolverConfig` (the explicit stepper, the choice of method, the rigid-mode
-acceleration, threads) and :class:`QuasiStaticConfig` (the Newton / conjugate-gradient solver), with units in the field
-names and the measured defaults (their measurements: docs/decisions/2026-12-03-solver-defaults.md)."""
+"""The solvers' configurations, units in the field names and a docstring on every field; measured defaults (their
+measurements: docs/decisions/2026-12-03-solver-defaults.md).
+
+:class:`SolverConfig` is a small composite: how a frame's equilibrium is found (``method``), the device and threads,
+and one config per part: :class:`GridConfig` (the background grid), :class:`ExplicitConfig` (the explicit MLS-MPM
+stepper: time step, damping, contact), :class:`QuasiStaticConfig` (the Newton / conjugate-gradient solver) and
+:class:`AccelerationConfig` (the rigid-mode acceleration of the explicit relaxation)."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 from ..errors import InputError
 
-__all__ = ["QuasiStaticConfig", "MIN_LAYERS_PER_CELL", "RIGID_MODE_AGGREGATE_MM", "RIGID_MODE_BASIS",
-           "RIGID_MODE_BASES", "SolverConfig"]
+__all__ = ["MIN_LAYERS_PER_CELL", "RIGID_MODE_AGGREGATE_MM", "RIGID_MODE_BASIS", "RIGID_MODE_BASES", "GridConfig",
+           "ExplicitConfig", "QuasiStaticConfig", "AccelerationConfig", "SolverConfig"]
+
+#: Fewest particle layers a derived grid cell spans along any axis (``GridConfig.min_layers_per_cell``): with one
+#: layer a cell the layers next to a driven slice move in a mode the grid does not see (docs/decisions/2026-12-03-solver-defaults.md).
+MIN_LAYERS_PER_CELL = 1.5
+
+#: Edge (mm) of the cubes each organ is cut into for the coarse space of the rigid-mode acceleration
+#: (:mod:`warpmpm.solvers.rigid_modes`); measured against whole organs, 40 mm cubes and no acceleration in docs/decisions/2026-12-03-solver-defaults.md.
+RIGID_MODE_AGGREGATE_MM = 25.0
+
+#: The motions of each cube of the rigid-mode acceleration's coarse space (``AccelerationConfig.basis``): the 6
+#: rigid ones; the 12 affine ones settle in fewer steps at more work a step, within the machine's drift of the same
+#: time (docs/decisions/2026-12-03-solver-defaults.md).
+RIGID_MODE_BASIS = "rigid"
+#: the coarse bases there are
+RIGID_MODE_BASES = ("rigid", "affine")
+
+
+def _finite(owner, name: str, lo: float = 0.0, strict: bool = True, optional: bool = False) -> None:
+    v = getattr(owner, name)
+    if v is None and optional:
+        return
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v > lo if strict else v >= lo)
+    if not ok:
+        raise InputError(f"{type(owner).__name__}.{name} must be a finite number {'>' if strict else '>='} {lo:g}, got {v!r}")
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    """The background grid (:func:`warpmpm.solvers.grid.grid_layout`)."""
+
+    particles_per_cell: float = 4.0
+    """Particles per grid cell used to derive the cell size from the particle volume,
+    ``dx = max((ppc * V_p)^(1/3), min_layers_per_cell * largest gap between neighbouring particles)``. 4 keeps more than
+    one quadrature point per cell (1 ppc gives MPM's ringing 'null modes') while keeping the cell near the slice
+    thickness, so organs closer than about one cell touch through the shared grid."""
+    cell_size_mm: float | None = None
+    """An explicit grid cell size (mm), overriding ``particles_per_cell``."""
+    margin_mm: float = 10.0
+    """Free space (mm) around the scene's bounding box (and any extra points given) for motion: the estimate's grid
+    already covers the targets and a tracker's whole reach. A particle that would still leave it stops the run with an
+    error naming this field."""
+    wall_cells: int = 3
+    """Thickness of the slip-wall layer at the domain faces, in cells."""
+    cell_at_least_gap: bool = True
+    """Never make a derived cell smaller than ``min_layers_per_cell`` times the largest gap between neighbouring
+    particles, nor an explicit ``cell_size_mm`` smaller than the gap itself (a thick-slice scan must not fall apart into
+    sheets). Only a simulation that drives every particle (the ground truth) may turn it off."""
+    min_layers_per_cell: float = MIN_LAYERS_PER_CELL
+    """With ``cell_at_least_gap``, how many particle layers a derived cell spans at least along every axis (one layer a
+    cell leaves a mode the grid does not see). The ground truth's finer grid keeps 1.0."""
+
+    def __post_init__(self):
+        _finite(self, "particles_per_cell")
+        _finite(self, "cell_size_mm", optional=True)
+        _finite(self, "margin_mm", strict=False)
+        _finite(self, "min_layers_per_cell", lo=1.0, strict=False)
+        if not isinstance(self.wall_cells, int) or self.wall_cells < 1:
+            raise InputError(f"GridConfig.wall_cells must be an integer >= 1, got {self.wall_cells!r}")
+
+
+@dataclass(frozen=True)
+class ExplicitConfig:
+    """The explicit MLS-MPM stepper (:class:`~warpmpm.solvers.explicit.MPMSolver`): time step, damping, contact."""
+
+    cfl: float = 0.5
+    """Courant number of the derived time step ``dt = cfl * dx / c``."""
+    cfl_limit: float = 0.6
+    """Largest Courant number accepted (for ``cfl`` and a user's ``dt_s``)."""
+    dt_s: float | None = None
+    """A fixed time step (s); refused when above the stable limit."""
+    mass_scaling: bool = True
+    """Give every material the stiffest one's wave speed (a fictitious density ``(lambda + 2 mu) / c^2``): the
+    equilibrium does not depend on densities, and the soft pancreas then relaxes as fast in steps as the stiffest organ."""
+    damping_per_s: float | None = None
+    """Grid velocity damping rate (1/s); None derives it from the scene: ``damping_factor * 2 pi c_s / L`` with ``c_s``
+    the median (scaled) shear wave speed and ``L`` the scene's size. 0: no damping under every rule."""
+    damping_factor: float = 4.0
+    """Multiplier of the derived damping (at 1 the slowest mode of the scene stays under-damped)."""
+    damping_rule: Literal["auto", "adaptive", "fixed"] = "auto"
+    """``"adaptive"``: critical damping of the mode the body is moving in, measured every step from the motion itself
+    (the Rayleigh quotient of the stiffness along the particles' velocities,
+    :func:`warpmpm.solvers.explicit_kernels.stiffness_rayleigh`), within ``damping_bounds``: the whole body comes to rest
+    2.5-8x sooner than with the fixed factor 4. ``"fixed"``: ``damping_per_s`` throughout. ``"auto"``: adaptive when a
+    frame waits for the body to settle (``ConvergenceConfig.wait_settled``), fixed when it stops on the driven slice
+    alone, where the fixed damping makes the body lag less behind the slice."""
+    damping_bounds: tuple[float, float] = (1.0 / 16.0, 16.0)
+    """Lowest and highest adaptive damping, as multiples of the derived ``damping_per_s``."""
+    damping_memory_steps: float = 10.0
+    """Steps over which the adaptive rule averages its Rayleigh quotient."""
+    check_every: int | None = None
+    """Read the NaN / out-of-grid flag back every this many steps; None: every step on the CPU (free), every 50 on CUDA
+    (a read-back synchronises the GPU with the host)."""
+    contact: Literal["sticky", "sliding"] = "sticky"
+    """How organs that touch interact. ``"sticky"``: one grid velocity field for all, touching organs move together.
+    ``"sliding"``: a grid velocity field per organ; where organs meet, motion toward each other along the contact normal
+    is removed and tangential motion is free or Coulomb-limited by ``friction``
+    (:func:`warpmpm.solvers.explicit_kernels.grid_update_fields`); organs may separate. Costs a grid per organ."""
+    friction: float = 0.0
+    """Coulomb friction coefficient of ``"sliding"`` contact (0: frictionless)."""
+    bonded: tuple[tuple[str, ...], ...] = (("pancreas", "duodenum"),)
+    """Groups of organs that stay bonded under ``"sliding"`` contact (one velocity field each group): by default the
+    pancreas and the duodenum, whose head sits in the duodenal loop; without any bond a frictionless pancreas pushed by a
+    neighbour floats away as a free body. ``()``: every organ slides."""
+
+    def __post_init__(self):
+        _finite(self, "cfl_limit")
+        _finite(self, "cfl")
+        _finite(self, "dt_s", optional=True)
+        _finite(self, "damping_per_s", strict=False, optional=True)
+        _finite(self, "damping_factor", strict=False)
+        _finite(self, "friction", strict=False)
+        _finite(self, "damping_memory_steps", lo=1.0, strict=False)
+        if self.damping_rule not in ("auto", "adaptive", "fixed"):
+            raise InputError(f"ExplicitConfig.damping_rule must be 'auto', 'adaptive' or 'fixed', got {self.damping_rule!r}")
+        lo_hi = self.damping_bounds
+        if (not isinstance(lo_hi, tuple) or len(lo_hi) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in lo_hi)
+                or not 0 < lo_hi[0] <= 1 <= lo_hi[1]):
+            raise InputError(f"ExplicitConfig.damping_bounds must be (low, high) with 0 < low <= 1 <= high, got {lo_hi!r}")
+        if self.contact not in ("sticky", "sliding"):
+            raise InputError(f"ExplicitConfig.contact must be 'sticky' or 'sliding', got {self.contact!r}")
+        groups = self.bonded
+        if not isinstance(groups, tuple) or not all(isinstance(g, tuple) and all(isinstance(o, str) for o in g) for g in groups):
+            raise InputError(f"ExplicitConfig.bonded must be a tuple of tuples of organ names, got {groups!r}")
+        named = [o for g in groups for o in g]
+        if len(named) != len(set(named)):
+            raise InputError(f"ExplicitConfig.bonded names an organ in two groups: {groups!r}")
+        if self.cfl_limit > 1.0:
+            raise InputError(f"ExplicitConfig.cfl_limit must be at most 1 (explicit MPM is unstable above), got {self.cfl_limit}")
+        if self.cfl > self.cfl_limit:
+            raise InputError(f"ExplicitConfig.cfl {self.cfl} is above the stable limit cfl_limit {self.cfl_limit}: the time step "
+                             f"dt = cfl dx / c would make the simulation blow up; use cfl <= {self.cfl_limit}")
+        if self.check_every is not None and (not isinstance(self.check_every, int) or self.check_every < 1):
+            raise InputError(f"ExplicitConfig.check_every must be an integer >= 1, got {self.check_every!r}")
 
 
 @dataclass(frozen=True)
@@ -75,196 +212,71 @@ class QuasiStaticConfig:
             raise InputError(f"QuasiStaticConfig.cg_tolerance must be below 1, got {self.cg_tolerance}")
 
 
-#: Fewest particle layers a derived grid cell spans along any axis (``SolverConfig.min_layers_per_cell``): with one
-#: layer a cell the layers next to a driven slice move in a mode the grid does not see (docs/decisions/2026-12-03-solver-defaults.md).
-MIN_LAYERS_PER_CELL = 1.5
+@dataclass(frozen=True)
+class AccelerationConfig:
+    """The rigid-mode acceleration of the explicit relaxation (:mod:`warpmpm.solvers.rigid_modes`): a coarse level over
+    organ cubes whose slow modes (stiff organs swinging on the soft pancreas, as heavy as they are stiff under mass
+    scaling) are accelerated to the body's slowest deformation; the equilibrium is unchanged, the step stays stable. It
+    starts once the driven slice has arrived, and a guard switches it off where it grows unstable
+    (``DriveResult.acceleration``). Sticky contact only."""
 
-#: Edge (mm) of the cubes each organ is cut into for the coarse space of the rigid-mode acceleration
-#: (:mod:`warpmpm.solvers.rigid_modes`); measured against whole organs, 40 mm cubes and no acceleration in docs/decisions/2026-12-03-solver-defaults.md.
-RIGID_MODE_AGGREGATE_MM = 25.0
+    mode: Literal["auto", "on", "off"] = "auto"
+    """``"auto"``: on when a frame waits for the body to settle (``ConvergenceConfig.wait_settled``) and the contact is
+    sticky; ``"on"``: also when a frame stops on the driven slice alone; ``"off"``: never."""
+    aggregate_mm: float | None = RIGID_MODE_AGGREGATE_MM
+    """Edge (mm) of the cubes each organ is cut into; None: whole organs (smaller cubes: fewer steps, a longer set-up
+    and more work a step)."""
+    basis: Literal["rigid", "affine"] = RIGID_MODE_BASIS
+    """The motions of each cube: ``"rigid"`` (6) or ``"affine"`` (12: also stretches and shears)."""
 
-#: The motions of each cube of the rigid-mode acceleration's coarse space (``SolverConfig.rigid_mode_basis``): the 6
-#: rigid ones; the 12 affine ones settle in fewer steps at more work a step, within the machine's drift of the same
-#: time (docs/decisions/2026-12-03-solver-defaults.md).
-RIGID_MODE_BASIS = "rigid"
-#: the coarse bases there are
-RIGID_MODE_BASES = ("rigid", "affine")
+    def __post_init__(self):
+        _finite(self, "aggregate_mm", optional=True)
+        if self.basis not in RIGID_MODE_BASES:
+            raise InputError(f"AccelerationConfig.basis must be one of {', '.join(RIGID_MODE_BASES)}, got {self.basis!r}")
+        if self.mode not in ("auto", "on", "off"):
+            raise InputError(f"AccelerationConfig.mode must be 'auto', 'on' or 'off', got {self.mode!r}")
 
 
 @dataclass(frozen=True)
 class SolverConfig:
-    """Solver settings (physical units in the names).
+    """How a frame's equilibrium is found, on which device, and each part's settings."""
 
-    Attributes:
-        particles_per_cell: particles per grid cell used to derive the cell size from the particle
-            volume, ``dx = max((ppc * V_p)^(1/3), min_layers_per_cell * largest gap between neighbouring particles)``
-            (a thick-slice scan must not fall apart into sheets, and no axis may hold one particle layer a cell).
-            The default 4 keeps more than one quadrature point per cell (1 ppc gives the ringing 'null modes' of
-            MPM) while keeping the cell near the slice thickness, so organs closer than about one cell touch
-            through the shared grid.
-        cell_size_mm: explicit grid cell size (overrides ``particles_per_cell``).
-        margin_mm: free space around the scene's bounding box (and any extra points given) for motion.
-            Default 10 mm: the estimate's grid already covers the targets (and a tracker's whole reach)
-            (docs/decisions/2026-12-03-solver-defaults.md). A particle that would still leave it stops the run with an error naming this field.
-        wall_cells: thickness of the slip-wall layer at the domain faces, in cells.
-        cfl: Courant number of the derived time step ``dt = cfl * dx / c``. Default 0.5 (docs/decisions/2026-12-03-solver-defaults.md).
-        cfl_limit: largest Courant number accepted for a user time step.
-        dt_s: fixed time step (s); refused when above the stable limit.
-        mass_scaling: give all materials the stiffest one's wave speed (see module docstring).
-        damping_per_s: grid velocity damping rate (1/s); None derives it from the scene:
-            ``damping_factor * 2 pi c_s / L`` with ``c_s`` the median (scaled) shear wave speed and ``L``
-            the scene's size.
-        damping_factor: multiplier of the derived damping. Default 4: at 1 the slowest mode of the
-            scene stays under-damped (docs/decisions/2026-12-03-solver-defaults.md).
-        damping_rule: ``"adaptive"``: critical damping of the mode the body is moving in, measured every step
-            from the motion itself (adaptive dynamic relaxation: the Rayleigh quotient of the stiffness along the
-            particles' velocities, :func:`warpmpm.solvers.explicit_kernels.stiffness_rayleigh`), within ``damping_bounds``; the
-            derived ``damping_per_s`` is the first step's value and the bounds' unit. It brings the whole body to
-            rest 2.5-8x sooner than the fixed factor 4. ``"fixed"``: ``damping_per_s`` throughout. ``"auto"`` (default): adaptive
-            when a frame waits for the body to settle (``ConvergenceConfig.wait_settled``), fixed when it stops on
-            the driven slice alone, where the fixed damping makes the body lag less behind the slice (docs/decisions/2026-12-03-solver-defaults.md).
-            ``damping_per_s`` 0 means no damping under every rule.
-        damping_bounds: lowest and highest adaptive damping, as multiples of the derived ``damping_per_s``.
-        damping_memory_steps: steps over which the adaptive rule averages its Rayleigh quotient.
-        device: Warp device (``"cpu"``, ``"cuda"``, ``"cuda:0"``); None: CUDA when available.
-        check_every: read the NaN / out-of-grid flag back every this many steps; None: every step on
-            the CPU (free), every 50 on CUDA (a read-back synchronises the GPU with the host).
-        contact: how organs that touch interact. ``"sticky"`` (default): one grid velocity field for all, so
-            touching organs move together (no sliding, no separation). ``"sliding"``: each organ has its own
-            grid velocity field; where organs meet, motion toward each other along the contact normal is
-            removed and tangential motion is free or Coulomb-limited by ``friction`` (multi-velocity-field
-            MPM: :func:`warpmpm.solvers.explicit_kernels.grid_update_fields`); organs may separate. Costs a grid per organ.
-        friction: Coulomb friction coefficient of ``"sliding"`` contact (0: frictionless).
-        bonded: groups of organs that stay bonded under ``"sliding"`` contact (they share one velocity
-            field). Default: the pancreas and the duodenum, whose head sits in the duodenal loop with shared
-            vessels and ducts; without any bond nothing tethers the pancreas in this model (it has no
-            retroperitoneum), and a frictionless pancreas pushed by a neighbour floats away as a free body
-            (docs/decisions/2026-12-03-solver-defaults.md). ``()``: every organ slides.
-        cell_at_least_gap: never make a derived cell smaller than ``min_layers_per_cell`` times the largest gap
-            between neighbouring particles, nor an explicit ``cell_size_mm`` smaller than the gap itself (default).
-            Only a simulation that drives every particle (the ground truth) may turn it off: its layers are held by
-            their targets, not by each other.
-        min_layers_per_cell: with ``cell_at_least_gap``, how many particle layers a derived cell spans at least along
-            every axis. Default :data:`MIN_LAYERS_PER_CELL` (1.5; one layer a cell leaves a mode the grid does not
-            see). The ground truth's finer grid keeps 1.0.
-        method: how a frame's equilibrium is found. ``"explicit"`` (default): dynamic relaxation by explicit MLS-MPM
-            steps under the PID drive, stopped by :class:`warpmpm.driving.ConvergenceConfig` (the paper's method).
-            ``"quasistatic"``: Newton iterations with a matrix-free conjugate-gradient solve on the same grid
-            (:mod:`warpmpm.solvers.quasistatic`): the settled equilibrium directly, in a fraction of the time the explicit
-            solver needs to wait for it; sticky contact only. ``"auto"``: the quasi-static
-            solve first, for at most ``QuasiStaticConfig.auto_newton_iterations``; a frame it has not settled by then
-            goes on with explicit steps from there (the result's ``method`` says which finished it). The tracker's
-            default, where a predicted frame starts in equilibrium; sticky contact only.
-        quasistatic: settings of the ``"quasistatic"`` method.
-        rigid_mode_acceleration: a coarse level for the explicit relaxation (:mod:`warpmpm.solvers.rigid_modes`): each organ's
-            six rigid motions, whose coarse modes slower than the body's slowest deformation are accelerated to it
-            (a two-level mass matrix; the equilibrium is unchanged, the step stays stable). Mass scaling makes the
-            stiff organs (duodenum, stomach: up to 2,900x the pancreas's modulus) as heavy as they are stiff, and
-            their rigid swings on the soft pancreas are what keeps a whole abdomen from settling.
-            ``"auto"`` (default): on when a frame waits for the body to settle (``ConvergenceConfig.wait_settled``) and
-            the contact is sticky; ``"on"``: also when a frame stops on the driven slice alone (sticky contact only);
-            ``"off"``: never. The coarse space: 25 mm cubes of each organ (``rigid_mode_aggregate_mm``); it starts once
-            the driven slice has arrived, and a guard switches it off where it grows unstable (``DriveResult.acceleration``).
-            The default phantom settles in 1,700 steps instead of not within 8,000 (docs/decisions/2026-12-03-solver-defaults.md).
-        rigid_mode_aggregate_mm: edge (mm) of the cubes each organ is cut into for the rigid-mode acceleration; None:
-            whole organs. Default :data:`RIGID_MODE_AGGREGATE_MM` (smaller cubes: fewer steps, a longer set-up per frame
-            and more work a step).
-        rigid_mode_basis: the motions of each cube in that coarse space: ``"rigid"`` (6: translations and rotations)
-            or ``"affine"`` (12: also stretches and shears, so the soft tissue between cubes can shear in the coarse
-            space: fewer steps, more work a step). Default :data:`RIGID_MODE_BASIS` (docs/decisions/2026-12-03-solver-defaults.md).
-        cpu_threads: on the CPU, threads an explicit step splits its particle and grid kernels over, and the
-            quasi-static solver its particle kernels
-            (:mod:`warpmpm.solvers.parallel`: Warp runs each CPU launch on one core, and launches over disjoint
-            particle ranges from several threads run at once; each thread scatters into a grid copy of its
-            own). None (default): the environment variable ``WARPMPM_CPU_THREADS`` when set, else every core
-            this process may use, at most 2 (docs/decisions/2026-12-03-solver-defaults.md); 1: one launch per kernel, the single-core path. Ignored on CUDA and inside a graph capture. The answers agree with one thread
-            to float32 rounding (the grid's sums are added in another order), not bit for bit.
-    """
-
-    particles_per_cell: float = 4.0
-    cell_size_mm: float | None = None
-    margin_mm: float = 10.0
-    wall_cells: int = 3
-    cfl: float = 0.5
-    cfl_limit: float = 0.6
-    dt_s: float | None = None
-    mass_scaling: bool = True
-    damping_per_s: float | None = None
-    damping_factor: float = 4.0
-    damping_rule: Literal["auto", "adaptive", "fixed"] = "auto"
-    damping_bounds: tuple[float, float] = (1.0 / 16.0, 16.0)
-    damping_memory_steps: float = 10.0
-    device: str | None = None
-    check_every: int | None = None
-    cell_at_least_gap: bool = True
-    min_layers_per_cell: float = MIN_LAYERS_PER_CELL
-    contact: Literal["sticky", "sliding"] = "sticky"
-    friction: float = 0.0
-    bonded: tuple[tuple[str, ...], ...] = (("pancreas", "duodenum"),)
     method: Literal["explicit", "quasistatic", "auto"] = "explicit"
-    quasistatic: QuasiStaticConfig = QuasiStaticConfig()
-    rigid_mode_acceleration: Literal["auto", "on", "off"] = "auto"
-    rigid_mode_aggregate_mm: float | None = RIGID_MODE_AGGREGATE_MM
-    rigid_mode_basis: Literal["rigid", "affine"] = RIGID_MODE_BASIS
+    """``"explicit"``: dynamic relaxation by explicit MLS-MPM steps under the PID drive, stopped by
+    :class:`~warpmpm.solvers.convergence.ConvergenceConfig` (the paper's method). ``"quasistatic"``: Newton iterations
+    with a matrix-free conjugate gradient on the same grid (:mod:`warpmpm.solvers.quasistatic`): the settled equilibrium
+    directly. ``"auto"``: those iterations first, for at most ``QuasiStaticConfig.auto_newton_iterations``, and explicit
+    steps from where they stopped when the frame has not settled (the tracker's default: a predicted frame starts in
+    equilibrium). Both but the first handle sticky contact only."""
+    grid: GridConfig = field(default_factory=GridConfig)
+    """The background grid."""
+    explicit: ExplicitConfig = field(default_factory=ExplicitConfig)
+    """The explicit stepper: time step, damping, contact."""
+    quasistatic: QuasiStaticConfig = field(default_factory=QuasiStaticConfig)
+    """The Newton / conjugate-gradient solver (``method`` ``"quasistatic"`` or ``"auto"``)."""
+    acceleration: AccelerationConfig = field(default_factory=AccelerationConfig)
+    """The rigid-mode acceleration of the explicit relaxation."""
+    device: str | None = None
+    """Warp device (``"cpu"``, ``"cuda"``, ``"cuda:0"``); None: CUDA when available."""
     cpu_threads: int | None = None
+    """On the CPU, threads an explicit step splits its particle and grid kernels over, and the quasi-static solver its
+    particle kernels (:mod:`warpmpm.solvers.parallel`: each thread scatters into a grid copy of its own). None: the
+    environment variable ``WARPMPM_CPU_THREADS`` when set, else every core this process may use, at most 2; 1: the
+    single-core path. Ignored on CUDA and inside a graph capture. The answers agree with one thread to float32 rounding."""
 
     def __post_init__(self):
-        def finite(name, lo=0.0, strict=True, optional=False):
-            v = getattr(self, name)
-            if v is None and optional:
-                return
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v > lo if strict else v >= lo)
-            if not ok:
-                raise InputError(f"SolverConfig.{name} must be a finite number {'>' if strict else '>='} {lo:g}, got {v!r}")
-
-        finite("particles_per_cell")
-        finite("cell_size_mm", optional=True)
-        finite("margin_mm", strict=False)
-        finite("cfl_limit")
-        finite("cfl")
-        finite("dt_s", optional=True)
-        finite("damping_per_s", strict=False, optional=True)
-        finite("damping_factor", strict=False)
-        finite("friction", strict=False)
-        finite("min_layers_per_cell", lo=1.0, strict=False)
-        finite("rigid_mode_aggregate_mm", optional=True)
-        if self.damping_rule not in ("auto", "adaptive", "fixed"):
-            raise InputError(f"SolverConfig.damping_rule must be 'auto', 'adaptive' or 'fixed', got {self.damping_rule!r}")
-        lo_hi = self.damping_bounds
-        if (not isinstance(lo_hi, tuple) or len(lo_hi) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in lo_hi)
-                or not 0 < lo_hi[0] <= 1 <= lo_hi[1]):
-            raise InputError(f"SolverConfig.damping_bounds must be (low, high) with 0 < low <= 1 <= high, got {lo_hi!r}")
-        finite("damping_memory_steps", lo=1.0, strict=False)
+        for name, cls in (("grid", GridConfig), ("explicit", ExplicitConfig), ("quasistatic", QuasiStaticConfig),
+                          ("acceleration", AccelerationConfig)):
+            if not isinstance(getattr(self, name), cls):
+                raise InputError(f"SolverConfig.{name} must be a {cls.__name__}, got {type(getattr(self, name)).__name__}")
         if self.method not in ("explicit", "quasistatic", "auto"):
             raise InputError(f"SolverConfig.method must be 'explicit', 'quasistatic' or 'auto', got {self.method!r}")
-        if not isinstance(self.quasistatic, QuasiStaticConfig):
-            raise InputError(f"SolverConfig.quasistatic must be a QuasiStaticConfig, got {type(self.quasistatic).__name__}")
-        if self.method in ("quasistatic", "auto") and self.contact != "sticky":
-            raise InputError(f"SolverConfig.method {self.method!r} handles sticky contact only; use contact='sticky' or the explicit method")
-        if self.contact not in ("sticky", "sliding"):
-            raise InputError(f"SolverConfig.contact must be 'sticky' or 'sliding', got {self.contact!r}")
-        if self.rigid_mode_basis not in RIGID_MODE_BASES:
-            raise InputError(f"SolverConfig.rigid_mode_basis must be one of {', '.join(RIGID_MODE_BASES)}, got {self.rigid_mode_basis!r}")
-        if self.rigid_mode_acceleration not in ("auto", "on", "off"):
-            raise InputError(f"SolverConfig.rigid_mode_acceleration must be 'auto', 'on' or 'off', got {self.rigid_mode_acceleration!r}")
-        if self.rigid_mode_acceleration == "on" and self.contact != "sticky":
-            raise InputError("SolverConfig.rigid_mode_acceleration 'on' handles sticky contact only (one grid field); "
-                             "use contact='sticky' or rigid_mode_acceleration='auto' / 'off'")
-        groups = self.bonded
-        if not isinstance(groups, tuple) or not all(isinstance(g, tuple) and all(isinstance(o, str) for o in g) for g in groups):
-            raise InputError(f"SolverConfig.bonded must be a tuple of tuples of organ names, got {groups!r}")
-        named = [o for g in groups for o in g]
-        if len(named) != len(set(named)):
-            raise InputError(f"SolverConfig.bonded names an organ in two groups: {groups!r}")
-        if self.cfl_limit > 1.0:
-            raise InputError(f"SolverConfig.cfl_limit must be at most 1 (explicit MPM is unstable above), got {self.cfl_limit}")
-        if self.cfl > self.cfl_limit:
-            raise InputError(f"SolverConfig.cfl {self.cfl} is above the stable limit cfl_limit {self.cfl_limit}: the time step "
-                             f"dt = cfl dx / c would make the simulation blow up; use cfl <= {self.cfl_limit}")
-        if not isinstance(self.wall_cells, int) or self.wall_cells < 1:
-            raise InputError(f"SolverConfig.wall_cells must be an integer >= 1, got {self.wall_cells!r}")
-        if self.check_every is not None and (not isinstance(self.check_every, int) or self.check_every < 1):
-            raise InputError(f"SolverConfig.check_every must be an integer >= 1, got {self.check_every!r}")
+        if self.method in ("quasistatic", "auto") and self.explicit.contact != "sticky":
+            raise InputError(f"SolverConfig.method {self.method!r} handles sticky contact only; use ExplicitConfig(contact='sticky') "
+                             "or the explicit method")
+        if self.acceleration.mode == "on" and self.explicit.contact != "sticky":
+            raise InputError("AccelerationConfig.mode 'on' handles sticky contact only (one grid field); use "
+                             "ExplicitConfig(contact='sticky') or AccelerationConfig(mode='auto' / 'off')")
         if self.cpu_threads is not None and (not isinstance(self.cpu_threads, int) or isinstance(self.cpu_threads, bool)
                                              or not 1 <= self.cpu_threads <= 64):
             raise InputError(f"SolverConfig.cpu_threads must be an integer from 1 to 64 (or None: the machine's cores, at most 2), "

@@ -28,7 +28,7 @@ class ConvergenceConfig:
     whole model's motion is measured every ``th_s`` steps (the 99th percentile of the particles'
     displacement over the last ``th_s`` steps): below ``settle_mm`` the body has *settled*.
     With ``wait_settled`` a frame runs on until the body has settled too: the *settled mode*, in which the
-    estimator also damps adaptively (:attr:`SolverConfig.damping_rule` ``"auto"``) and drives without the
+    estimator also damps adaptively (:attr:`ExplicitConfig.damping_rule <warpmpm.solvers.config.ExplicitConfig.damping_rule>` ``"auto"``) and drives without the
     integral term (:attr:`DriveConfig.ki_ratio` None); the mode the FEM reference checks (docs/performance.md).
     """
 

@@ -43,7 +43,7 @@ RAYLEIGH_SLOTS = 64
 class MPMSolver:
     """Explicit MLS-MPM time stepper over an :class:`MPMModel`.
 
-    ``adaptive``: whether the velocity damping adapts (:attr:`SolverConfig.damping_rule`); None: only under
+    ``adaptive``: whether the velocity damping adapts (:attr:`ExplicitConfig.damping_rule <warpmpm.solvers.config.ExplicitConfig.damping_rule>`); None: only under
     ``"adaptive"`` (an ``"auto"`` rule is resolved by whoever knows the stopping rule, the estimator)."""
 
     def __init__(self, model: MPMModel, adaptive: bool | None = None):
@@ -90,7 +90,7 @@ class MPMSolver:
         # velocity damping factor per step, on the device so the adaptive rule can change it inside a captured graph
         self.damping = wp.array([math.exp(-model.damping_per_s * model.dt_s)], dtype=float, device=d)
         self._damping_dt = model.dt_s  # the step length the fixed factor was computed for
-        self.adaptive = model.config.damping_rule == "adaptive" if adaptive is None else bool(adaptive)
+        self.adaptive = model.config.explicit.damping_rule == "adaptive" if adaptive is None else bool(adaptive)
         if self.adaptive:
             self._accel_prev = wp.zeros(model.n, dtype=wp.vec3, device=d)
             self._rayleigh = wp.zeros((2, RAYLEIGH_SLOTS), dtype=float, device=d)
@@ -98,7 +98,7 @@ class MPMSolver:
             #: 1 for the particles whose motion measures the stiffness, 0 for the driven ones (:meth:`set_driven`)
             self.rayleigh_weight = wp.ones(model.n, dtype=float, device=d)
         self.step_count = 0
-        ce = model.config.check_every
+        ce = model.config.explicit.check_every
         self.check_every = ce if ce is not None else (50 if str(d).startswith("cuda") else 1)
         dx_m = model.dx_mm * 1e-3
         self._dx = dx_m
@@ -197,10 +197,10 @@ class MPMSolver:
             parallel.run_together(
                 lambda k=k: self._g2p_part(k, x_in[k], carry_in[k], F_in[k], pv[4][k], [a[k] for a in outs], dt) for k in range(n))
         if self.adaptive:
-            lo, hi = cfg.damping_bounds
+            lo, hi = cfg.explicit.damping_bounds
             wp.launch(kernels.stiffness_rayleigh, m.n, [state_in.v, state_out.v, self._accel_prev, m.mass, self.rayleigh_weight,
                                                         self.damping, dt, self._rayleigh], device=d)
-            wp.launch(kernels.adapt_damping, 1, [self._rayleigh, self._rayleigh_memory, 1.0 - 1.0 / cfg.damping_memory_steps, dt,
+            wp.launch(kernels.adapt_damping, 1, [self._rayleigh, self._rayleigh_memory, 1.0 - 1.0 / cfg.explicit.damping_memory_steps, dt,
                                                  lo * m.damping_per_s, hi * m.damping_per_s, self.damping], device=d)
         self.step_count += 1
         if check and self.check_every and self.step_count % self.check_every == 0:
@@ -233,16 +233,16 @@ class MPMSolver:
         if self.sparse_update:
             lo, hi = self._block_ranges[k] if n > 1 else (0, self._stamps.shape[0])
             wp.launch(kernels.grid_update_blocks, (hi - lo, *self._stamps.shape[1:]),
-                      [self.grid_mm, parts, lo, self._stamps, self._stamp(), self._updated, damping, cfg.wall_cells,
+                      [self.grid_mm, parts, lo, self._stamps, self._stamp(), self._updated, damping, cfg.grid.wall_cells,
                        int(self._accelerating()), self._grid_f, self.grid_v, self._force_sum], device=m.device)
             return
         lo, hi = self._node_ranges[k] if n > 1 else (0, m.grid_shape[0])
         dim = (hi - lo, m.grid_shape[1], m.grid_shape[2])
         if self.fields:
             wp.launch(kernels.grid_update_fields, dim, [self.grid_m, self.grid_mv, self.grid_g, m.n_fields, m.grid_shape[0], parts, lo,
-                                                        damping, cfg.wall_cells, cfg.friction, self.grid_v], device=m.device)
+                                                        damping, cfg.grid.wall_cells, cfg.explicit.friction, self.grid_v], device=m.device)
         else:
-            wp.launch(kernels.grid_update, dim, [self.grid_mm, parts, lo, damping, cfg.wall_cells,
+            wp.launch(kernels.grid_update, dim, [self.grid_mm, parts, lo, damping, cfg.grid.wall_cells,
                                                  int(self._accelerating()), self._grid_f, self.grid_v, self._force_sum],
                       device=m.device)
 
@@ -271,7 +271,7 @@ class MPMSolver:
             )
         raise SimulationError(
             f"particle {particle} ({organ}) tried to leave the simulation grid at step {step}; "
-            f"increase SolverConfig.margin_mm (now {self.model.config.margin_mm} mm) or check the targets"
+            f"increase GridConfig.margin_mm (now {self.model.config.grid.margin_mm} mm) or check the targets"
         )
 
     def reset_status(self) -> None:

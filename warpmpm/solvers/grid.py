@@ -35,16 +35,16 @@ def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm:
     cfg = config
     if particles.n == 0:
         raise InputError("the particle model is empty")
-    gap = particles.max_gap_mm if cfg.cell_at_least_gap else 0.0
-    if cfg.cell_size_mm:
-        if cfg.cell_size_mm < gap * (1 - 1e-9):
-            raise InputError(f"grid cell {cfg.cell_size_mm} mm is smaller than the {gap:.2f} mm gap between neighbouring "
+    gap = particles.max_gap_mm if cfg.grid.cell_at_least_gap else 0.0
+    if cfg.grid.cell_size_mm:
+        if cfg.grid.cell_size_mm < gap * (1 - 1e-9):
+            raise InputError(f"grid cell {cfg.grid.cell_size_mm} mm is smaller than the {gap:.2f} mm gap between neighbouring "
                              "particles: the particle layers would not share grid nodes and would move apart; "
                              f"use cell_size_mm >= {gap:.2f}")
-        dx = float(cfg.cell_size_mm)
+        dx = float(cfg.grid.cell_size_mm)
     else:
         # the particle layers must share grid nodes (thick slices), and no axis may hold one layer a cell (null modes)
-        dx = max(float((cfg.particles_per_cell * np.median(particles.volume_mm3)) ** (1 / 3)), cfg.min_layers_per_cell * gap)
+        dx = max(float((cfg.grid.particles_per_cell * np.median(particles.volume_mm3)) ** (1 / 3)), cfg.grid.min_layers_per_cell * gap)
     pts = particles.positions_mm
     if extra_points_mm is not None and len(extra_points_mm):
         extra = np.asarray(extra_points_mm, dtype=np.float64).reshape(-1, 3)
@@ -52,9 +52,9 @@ def grid_layout(particles: ParticleModel, config: SolverConfig, extra_points_mm:
             bad = int(np.nonzero(~np.all(np.isfinite(extra), axis=1))[0][0])
             raise InputError(f"extra_points_mm holds a non-finite value (point {bad}); the grid must cover finite positions")
         pts = np.vstack([pts, extra])
-    lo = pts.min(axis=0) - cfg.margin_mm
-    hi = pts.max(axis=0) + cfg.margin_mm
-    pad = (cfg.wall_cells + 2) * dx
+    lo = pts.min(axis=0) - cfg.grid.margin_mm
+    hi = pts.max(axis=0) + cfg.grid.margin_mm
+    pad = (cfg.grid.wall_cells + 2) * dx
     # nodes at whole multiples of dx in world mm: the margin (and the extra points) set how far the grid
     # reaches, never where its nodes lie, so they cannot change the answer (a half-cell shift did by 4-12 %)
     origin = np.floor((lo - pad) / dx) * dx
@@ -105,36 +105,36 @@ class MPMModel:
         modulus = lam + 2 * mu
         real_speed = np.sqrt(modulus / rho)
         self.real_wave_speed_m_s = float(real_speed.max())
-        if cfg.mass_scaling:
+        if cfg.explicit.mass_scaling:
             rho_eff = modulus / self.real_wave_speed_m_s**2
         else:
             rho_eff = rho
         self.density_kg_m3 = rho_eff
         self.wave_speed_m_s = float(np.sqrt(modulus / rho_eff).max())
         dx_m = self.dx_mm * 1e-3
-        self.dt_limit_s = cfg.cfl_limit * dx_m / self.wave_speed_m_s
-        if cfg.dt_s is not None:
-            if not (cfg.dt_s > 0 and math.isfinite(cfg.dt_s)):
-                raise InputError(f"time step must be a positive finite number, got {cfg.dt_s}")
-            if cfg.dt_s > self.dt_limit_s:
+        self.dt_limit_s = cfg.explicit.cfl_limit * dx_m / self.wave_speed_m_s
+        if cfg.explicit.dt_s is not None:
+            if not (cfg.explicit.dt_s > 0 and math.isfinite(cfg.explicit.dt_s)):
+                raise InputError(f"time step must be a positive finite number, got {cfg.explicit.dt_s}")
+            if cfg.explicit.dt_s > self.dt_limit_s:
                 raise InputError(
-                    f"time step {cfg.dt_s:.3e} s is above the stable limit {self.dt_limit_s:.3e} s "
-                    f"(CFL {cfg.cfl_limit} x dx {self.dx_mm:.2f} mm / wave speed {self.wave_speed_m_s:.1f} m/s)"
+                    f"time step {cfg.explicit.dt_s:.3e} s is above the stable limit {self.dt_limit_s:.3e} s "
+                    f"(CFL {cfg.explicit.cfl_limit} x dx {self.dx_mm:.2f} mm / wave speed {self.wave_speed_m_s:.1f} m/s)"
                 )
-            self.dt_s = float(cfg.dt_s)
+            self.dt_s = float(cfg.explicit.dt_s)
         else:
-            self.dt_s = cfg.cfl * dx_m / self.wave_speed_m_s
-        if cfg.damping_per_s is None:
+            self.dt_s = cfg.explicit.cfl * dx_m / self.wave_speed_m_s
+        if cfg.explicit.damping_per_s is None:
             # Slowest shear mode of the scene: omega ~ pi c_s / L, with the smallest scaled shear speed.
             c_shear = np.sqrt(mu / rho_eff)
             size_m = float(np.max(particles.positions_mm.max(0) - particles.positions_mm.min(0))) * 1e-3
-            if not (cfg.damping_factor >= 0 and math.isfinite(cfg.damping_factor)):
-                raise InputError(f"damping_factor must be a finite number >= 0, got {cfg.damping_factor}")
-            self.damping_per_s = float(cfg.damping_factor * 2.0 * math.pi * np.median(c_shear) / max(size_m, 10 * dx_m))
+            if not (cfg.explicit.damping_factor >= 0 and math.isfinite(cfg.explicit.damping_factor)):
+                raise InputError(f"damping_factor must be a finite number >= 0, got {cfg.explicit.damping_factor}")
+            self.damping_per_s = float(cfg.explicit.damping_factor * 2.0 * math.pi * np.median(c_shear) / max(size_m, 10 * dx_m))
         else:
-            if cfg.damping_per_s < 0:
-                raise InputError(f"damping must be >= 0 1/s, got {cfg.damping_per_s}")
-            self.damping_per_s = float(cfg.damping_per_s)
+            if cfg.explicit.damping_per_s < 0:
+                raise InputError(f"damping must be >= 0 1/s, got {cfg.explicit.damping_per_s}")
+            self.damping_per_s = float(cfg.explicit.damping_per_s)
 
         mass = rho_eff * vol_mm3 * 1e-9
         self.mass_kg = mass
@@ -145,8 +145,8 @@ class MPMModel:
         self.lam = wp.array(lam.astype(np.float32), dtype=float, device=d)
         #: grid velocity fields: one per organ with sliding contact, one shared with sticky contact
         field_of_organ = np.zeros(len(particles.organs), dtype=np.int32)
-        if cfg.contact == "sliding":
-            group_of = {o: gi for gi, g in enumerate(cfg.bonded) for o in g}
+        if cfg.explicit.contact == "sliding":
+            group_of = {o: gi for gi, g in enumerate(cfg.explicit.bonded) for o in g}
             keys = [("bond", group_of[o]) if o in group_of else ("organ", o) for o in particles.organs]
             ids = {k: i for i, k in enumerate(dict.fromkeys(keys))}
             field_of_organ = np.array([ids[k] for k in keys], dtype=np.int32)
@@ -177,7 +177,7 @@ class MPMModel:
             "dt_limit_s": self.dt_limit_s,
             "wave_speed_m_s": self.wave_speed_m_s,
             "damping_per_s": self.damping_per_s,
-            "mass_scaling": self.config.mass_scaling,
+            "mass_scaling": self.config.explicit.mass_scaling,
             "method": self.config.method,
             "device": str(self.device),
         }

@@ -104,7 +104,7 @@ class QuasiStaticSolver:
     def __init__(self, model: MPMModel, config: QuasiStaticConfig | None = None):
         if model.n_fields > 1:
             raise InputError("the quasi-static solver handles sticky contact only (one grid field); use "
-                             "SolverConfig(contact='sticky') or the explicit solver for sliding contact")
+                             "ExplicitConfig(contact='sticky') or the explicit solver for sliding contact")
         self.model = model
         self.config = config or QuasiStaticConfig()
         d = model.device
@@ -396,4 +396,4 @@ class QuasiStaticSolver:
         if code == kernels.STATUS_NONFINITE:
             raise SimulationError(f"quasi-static solve: non-finite position or deformation at particle {particle} ({organ})")
         raise SimulationError(f"quasi-static solve: particle {particle} ({organ}) would leave the simulation grid; increase "
-                              f"SolverConfig.margin_mm (now {self.model.config.margin_mm} mm) or check the targets")
+                              f"GridConfig.margin_mm (now {self.model.config.grid.margin_mm} mm) or check the targets")

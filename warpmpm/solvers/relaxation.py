@@ -47,18 +47,18 @@ class ExplicitRelaxation:
         self.driven = driven
         self.convergence = convergence
         settle = convergence.wait_settled
-        rule = mpm.config.damping_rule
+        rule = mpm.config.explicit.damping_rule
         # the "auto" damping and the default integral follow the stopping rule given here (not a per-frame override)
         self.solver = MPMSolver(mpm, adaptive=rule == "adaptive" or (rule == "auto" and settle))
         self.solver.set_driven(driven)
         self.drive_config = drive_config
         self.gains = drive_config.resolve(mpm.dt_s, mpm.dx_mm, settle=settle)
-        #: the coarse level of the relaxation (:attr:`SolverConfig.rigid_mode_acceleration`); None: none
-        acc = mpm.config.rigid_mode_acceleration
+        #: the coarse level of the relaxation (:attr:`AccelerationConfig.mode <warpmpm.solvers.config.AccelerationConfig.mode>`); None: none
+        acc = mpm.config.acceleration.mode
         self.accelerator = None
         if mpm.config.method != "quasistatic" and (acc == "on" or (acc == "auto" and settle and mpm.n_fields == 1)):
-            self.accelerator = RigidModeAccelerator(mpm, aggregate_mm=mpm.config.rigid_mode_aggregate_mm,
-                                                    modes=mpm.config.rigid_mode_basis)
+            self.accelerator = RigidModeAccelerator(mpm, aggregate_mm=mpm.config.acceleration.aggregate_mm,
+                                                    modes=mpm.config.acceleration.basis)
             self.solver.set_accelerator(self.accelerator)
         d = mpm.device
         self.state = mpm.state()

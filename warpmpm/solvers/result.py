@@ -25,7 +25,7 @@ class DriveResult:
     ``linear_iterations`` their conjugate-gradient iterations (each costs about half an explicit step), the residual
     histories have one entry per Newton iteration, ``reason`` is ``"settled"`` or ``"max_iterations"`` and
     ``body_motion_mm`` is the largest particle move of the last iteration. ``acceleration``: whether the rigid-mode
-    acceleration ran (:attr:`SolverConfig.rigid_mode_acceleration`): ``"none"``, ``"from step N"`` (once the slice had
+    acceleration ran (:attr:`AccelerationConfig.mode <warpmpm.solvers.config.AccelerationConfig.mode>`): ``"none"``, ``"from step N"`` (once the slice had
     arrived), with ``", switched off at step M"`` when its guard found it unstable.
     """
 

@@ -1,6 +1,6 @@
 """Rigid-mode acceleration of the explicit relaxation: a two-level mass matrix for stiff organs on a soft one.
 
-Why. Mass scaling (:attr:`SolverConfig.mass_scaling <warpmpm.solvers.config.SolverConfig.mass_scaling>`) gives every
+Why. Mass scaling (:attr:`ExplicitConfig.mass_scaling <warpmpm.solvers.config.ExplicitConfig.mass_scaling>`) gives every
 material the stiffest one's wave speed, so the time step is that of the softest: each organ's density becomes
 proportional to its modulus. The duodenum (2,900x the pancreas's shear modulus) then weighs 2,900x the pancreas per
 volume, and its motions on the soft pancreas, held by a few driven particles, are the slowest modes of the scene by
@@ -21,11 +21,11 @@ group's share of the node's mass, and ``B = Phi diag(beta_j - 1) Phi^T`` from th
 (``K``: the small-strain stiffness of the particles on the grid plus the drive's spring, the operator of
 :mod:`warpmpm.solvers.quasistatic`; ``M``: the nodal masses), ``beta_j = omega_t^2 / omega_j^2`` for the modes slower than the
 target ``omega_t`` and 1 for the others. Coarse mode ``j`` then accelerates as if its mass were ``1 / beta_j`` of what
-it is: it swings at ``omega_t`` instead of ``omega_j``, and the adaptive damping (:attr:`SolverConfig.damping_rule
-<warpmpm.solvers.config.SolverConfig.damping_rule>`) brings it to rest with the rest of the body. A group is a cube of about
+it is: it swings at ``omega_t`` instead of ``omega_j``, and the adaptive damping (:attr:`ExplicitConfig.damping_rule
+<warpmpm.solvers.config.ExplicitConfig.damping_rule>`) brings it to rest with the rest of the body. A group is a cube of about
 ``aggregate_mm`` of one organ (:func:`aggregate_groups`): with whole organs as groups a stiff organ's bending is still
 slow; with 25 mm cubes the default phantom settles in 1,700 steps instead of 4,700, and in 1,100 when each cube
-moves with its 12 affine motions (:attr:`SolverConfig.rigid_mode_basis <warpmpm.solvers.config.SolverConfig.rigid_mode_basis>`;
+moves with its 12 affine motions (:attr:`AccelerationConfig.basis <warpmpm.solvers.config.AccelerationConfig.basis>`;
 but more work a step, so about the same time a frame: not the default; docs/decisions/2026-12-03-solver-defaults.md).
 
 What it does not change. The equilibrium: where the force vanishes, so does the correction (it preconditions the
@@ -107,7 +107,7 @@ class RigidModeAccelerator:
                  aggregate_mm: float | None = AGGREGATE_MM):
         if model.n_fields > 1:
             raise InputError("the rigid-mode acceleration handles sticky contact only (one grid field); use "
-                             "SolverConfig(contact='sticky') or turn it off (SolverConfig.rigid_mode_acceleration='off')")
+                             "ExplicitConfig(contact='sticky') or turn it off (AccelerationConfig(mode='off'))")
         if not (isinstance(target_factor, (int, float)) and math.isfinite(target_factor) and target_factor > 0):
             raise InputError(f"rigid-mode target factor must be a finite number > 0, got {target_factor!r}")
         if modes not in RIGID_MODE_BASES:
