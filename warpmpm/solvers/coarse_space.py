@@ -179,8 +179,8 @@ class CoarseSpace:
             s, g = table["node_share"][:, q], table["node_group"][:, q]
             y = (table["Xn"] - table["centre"][g]) / table["radius"][g, None]
             vals = s[:, None, None] * (a_c[None] + np.einsum("cij,nj->nci", A_c, y))
-            for j in range(S):
-                np.add.at(Z, (rows, g * S + j), vals[:, j])
+            for j in range(S):  # a node holds each group once: the (row, column) pairs of one q are distinct
+                Z[rows, g * S + j] += vals[:, j]
         return Z
 
     def device_table(self, table: dict, capacity: int | None = None) -> dict:
