@@ -6,7 +6,7 @@ import SimpleITK as sitk
 
 from conftest import data_case
 from warpmpm.images import InputError, crop_to_organs, load_case, mask_image, pad_square, parse_organs, resolve_labels, write_case
-from warpmpm.metrics import dice
+from warpmpm.metrics import correlation, dice
 from warpmpm.model import build_model, voxelize
 from warpmpm.phantom import make_phantom
 
@@ -211,3 +211,18 @@ def test_merged_models_share_one_grid():
         merge_models(a, block_model((3, 3, 3), (2.0, 2.0, 2.0), "duodenum", origin_mm=(9.0, 0.0, 0.0)))
     with pytest.raises(InputError, match="one voxel lattice"):
         merge_models(a, block_model((3, 3, 3), (2.5, 2.0, 2.0), "duodenum", origin_mm=(10.0, 0.0, 0.0)))
+
+
+def test_correlation_is_the_normalised_cross_correlation():
+    """The one correlation the plane check and the registration passes score slices by: invariant to an intensity
+    scale and offset, -1 for an inverted image, near 0 for independent noise, and the caller's value where an image
+    is flat."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=2000)
+    assert correlation(a, 2.5 * a + 7.0) == pytest.approx(1.0, abs=1e-12)
+    assert correlation(a, -a) == pytest.approx(-1.0, abs=1e-12)
+    assert abs(correlation(a, rng.normal(size=2000))) < 0.1
+    b = 0.6 * a + 0.8 * rng.normal(size=2000)
+    assert correlation(a, b) == pytest.approx(np.corrcoef(a, b)[0, 1], abs=1e-12)
+    assert correlation(a, np.full(2000, 3.0)) == 0.0 and correlation(a, np.full(2000, 3.0), flat=-1.0) == -1.0
+    assert correlation(np.zeros(0), np.zeros(0), flat=-1.0) == -1.0

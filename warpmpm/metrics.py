@@ -7,7 +7,7 @@ import numpy as np
 from .images import Geometry
 from .model import voxelize
 
-__all__ = ["particle_errors_mm", "dice", "covering_geometry", "evaluate"]
+__all__ = ["particle_errors_mm", "dice", "correlation", "covering_geometry", "evaluate"]
 
 
 def particle_errors_mm(estimate_mm: np.ndarray, truth_mm: np.ndarray) -> np.ndarray:
@@ -25,6 +25,17 @@ def dice(a: np.ndarray, b: np.ndarray) -> float:
     b = np.asarray(b, dtype=bool)
     total = int(a.sum()) + int(b.sum())
     return 1.0 if total == 0 else 2.0 * int(np.logical_and(a, b).sum()) / total
+
+
+def correlation(a: np.ndarray, b: np.ndarray, flat: float = 0.0) -> float:
+    """Normalised cross-correlation of two equally long intensity vectors (-1 .. 1); ``flat`` where either is constant
+    (or empty), which has no correlation: 0 to count it as no match, -1 to make it lose every comparison."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    a = a - a.mean() if a.size else a
+    b = b - b.mean() if b.size else b
+    den = float(np.sqrt((a @ a) * (b @ b)))
+    return float(a @ b) / den if den > 0 else float(flat)
 
 
 def covering_geometry(geometry: Geometry, *point_sets_mm: np.ndarray, margin_voxels: int = 2) -> Geometry:

@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputWarning
+from .imaging import capture_slice, slice_mask, warp_array
+from .metrics import correlation
 from .model import ParticleModel
-from .imaging import capture_slice, slice_mask
-from .imaging import warp_array
 from .slices import DrivingSlice, extract_slice
 from .targets import plane_projector
 
@@ -78,13 +78,6 @@ class PlaneCheck:
                 "disagreements": self.disagreements, "evaluations": self.evaluations}
 
 
-def _correlation(a: np.ndarray, b: np.ndarray) -> float:
-    a = a - a.mean() if a.size else a
-    b = b - b.mean() if b.size else b
-    den = float(np.sqrt((a @ a) * (b @ b)))
-    return float(a @ b) / den if den > 0 else 0.0
-
-
 class _Planes:
     """The captured planes and their fixed comparison regions; scores a motion of every particle."""
 
@@ -109,7 +102,7 @@ class _Planes:
         out = []
         for s, m, cap in zip(self.slices, self.regions, self.captured):
             ren = sitk_array(extract_slice(vol, self.geometry, s.orientation, s.index, self.centre))[m].astype(np.float64)
-            out.append(_correlation(ren, cap))
+            out.append(correlation(ren, cap))
         return out
 
     def match(self, positions_mm) -> float:

@@ -23,10 +23,10 @@ import SimpleITK as sitk
 
 from .errors import InputError, SimulationError, InputWarning
 from .images import Geometry
+from .imaging import capture_slice, particle_label_map, slice_mask, warp_array
+from .metrics import correlation
 from .model import ParticleModel
-from .imaging import particle_label_map, warp_array
 from .registration import SliceField, register_organ_demons, register_slice_bspline, register_slice_organs
-from .imaging import capture_slice, slice_mask
 from .slices import DrivingSlice, InPlaneAffine, driven_indices, extract_slice, in_plane_axes
 
 __all__ = ["plane_projector", "DriveTargets", "slice_targets", "affine_drive_targets", "affine_targets",
@@ -266,10 +266,7 @@ def _rendered_passes(model, slices, planning_volume, captured_volume, labels, ge
 def _correlation(a: sitk.Image, b: sitk.Image, mask: sitk.Image) -> float:
     """Normalised cross-correlation of two slices over a mask (-1 .. 1; -1 where either is flat there)."""
     m = sitk.GetArrayViewFromImage(mask) > 0
-    u, v = sitk.GetArrayFromImage(a)[m].astype(np.float64), sitk.GetArrayFromImage(b)[m].astype(np.float64)
-    u, v = u - u.mean() if u.size else u, v - v.mean() if v.size else v
-    den = float(np.sqrt((u @ u) * (v @ v)))
-    return float(u @ v) / den if den > 0 else -1.0
+    return correlation(sitk.GetArrayFromImage(a)[m], sitk.GetArrayFromImage(b)[m], flat=-1.0)
 
 
 def _registration_pass(model: ParticleModel, slices: list[DrivingSlice], planning_volume: np.ndarray,
