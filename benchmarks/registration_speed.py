@@ -7,9 +7,10 @@ each metric of ITK's registration, at the default random sampling of 25 % of the
 sampling, and for the Gauss-Newton backend (every mask pixel, the correlation metric); then both backends at
 cine-frame pixel sizes.
 
-    python benchmarks/registration_speed.py
+    python benchmarks/registration_speed.py [--raw default]
 """
 
+import argparse
 import os
 import time
 from contextlib import nullcontext
@@ -26,6 +27,9 @@ from warpmpm.slices import extract_slice
 
 
 def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--raw", type=raw.check_name, default="default", help="the run's name in benchmarks/results/registration_speed.json")
+    a = p.parse_args()
     case = make_phantom(seed=0)
     g = case.geometry
     k = int(np.median(np.nonzero(case.labels == case.label_map["pancreas"])[0]))
@@ -89,7 +93,7 @@ def main():
             threads = 1 if one else sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
             print(f"| {n} x {n} ({px:g} mm) | {backend} | {threads} | {np.median(times) * 1e3:.1f} | {np.median(errs):.3f} |")
             out.append({"pixels_mm": px, "backend": backend, "itk_threads": threads, "times_s": times, "rms_errors_mm": errs})
-    raw.save(__file__, out)
+    raw.save(__file__, out, run=a.raw)
 
 
 if __name__ == "__main__":
