@@ -75,3 +75,12 @@ def test_no_script_edits_sys_path():
                 if f.endswith(".py") and f != os.path.basename(__file__):
                     text = open(os.path.join(dirpath, f)).read()
                     assert "sys.path.insert" not in text and "sys.path.append" not in text, os.path.join(dirpath, f)
+
+
+@pytest.mark.parametrize("folder", FOLDERS, ids=["benchmarks", "studies"])
+def test_every_script_answers_help_without_running(folder):
+    """``python benchmarks/<script>.py --help`` prints its options and stops (a script without a parser ran whole)."""
+    for name in scripts(folder):
+        tree = ast.parse(open(os.path.join(folder, f"{name}.py")).read())
+        parsers = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "attr", getattr(n.func, "id", "")) == "ArgumentParser"]
+        assert parsers, f"{name}.py builds no argparse.ArgumentParser"
