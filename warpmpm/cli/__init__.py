@@ -1,8 +1,10 @@
-"""The ``warpmpm`` command: ``run | sweep | multi | train | view | track | make-cine | evaluate-track``.
+"""The ``warpmpm`` command: ``run | sweep | sweep-planes | multi | train | view | track | make-cine | make-truth |
+evaluate-track | cine-info``.
 
     warpmpm run                                  # the seed's experiment on the built-in phantom (= examples/seed_experiment.py)
     warpmpm run --labels L.nii.gz --image I.nii.gz --preset totalseg_mr --json out.json --rrd out.rrd
     warpmpm sweep --phantom-seeds 0,1 --organs all --out runs/sweep.csv --workers 2
+    warpmpm sweep-planes --phantom-seeds 0,1 --truth-seeds 0,1 --out runs/planes.csv --workers 2
     warpmpm multi --phantom-seeds 0,1 --out runs/multi.csv
     warpmpm train runs/sweep.csv --out runs/selection_error.json
     warpmpm view out.rrd [--summary | --screenshot out.png]
@@ -23,11 +25,11 @@ import sys
 
 from ..errors import InputError, SimulationError
 from .exit_codes import EXIT_INPUT, EXIT_INTERRUPTED, EXIT_PIPE_CLOSED, EXIT_SIMULATION, EXIT_TASKS_FAILED
-from .experiment_commands import cmd_multi, cmd_run, cmd_sweep, cmd_train, cmd_view, config_from_args
+from .experiment_commands import cmd_multi, cmd_run, cmd_sweep, cmd_sweep_planes, cmd_train, cmd_view, config_from_args
 from .options import build_parser
 from .track_commands import cmd_cine_info, cmd_evaluate_track, cmd_make_cine, cmd_make_truth, cmd_track
 
-__all__ = ["build_parser", "config_from_args", "cmd_run", "cmd_sweep", "cmd_multi", "cmd_train", "cmd_view",
+__all__ = ["build_parser", "config_from_args", "cmd_run", "cmd_sweep", "cmd_sweep_planes", "cmd_multi", "cmd_train", "cmd_view",
            "cmd_track", "cmd_make_cine", "cmd_make_truth", "cmd_evaluate_track", "cmd_cine_info", "COMMANDS", "main", "run_main",
            "EXIT_TASKS_FAILED", "EXIT_INPUT", "EXIT_SIMULATION", "EXIT_INTERRUPTED", "EXIT_PIPE_CLOSED"]
 
@@ -66,7 +68,7 @@ def _quiet(verbose: bool) -> None:
         os.close(devnull)
 
 
-COMMANDS = {"run": cmd_run, "cine-info": cmd_cine_info, "sweep": cmd_sweep, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
+COMMANDS = {"run": cmd_run, "cine-info": cmd_cine_info, "sweep": cmd_sweep, "sweep-planes": cmd_sweep_planes, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
             "make-cine": cmd_make_cine, "make-truth": cmd_make_truth, "evaluate-track": cmd_evaluate_track}
 
 

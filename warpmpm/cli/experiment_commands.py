@@ -10,7 +10,7 @@ from ..errors import InputError
 
 from .exit_codes import EXIT_TASKS_FAILED
 
-__all__ = ["config_from_args", "cmd_run", "cmd_sweep", "cmd_multi", "cmd_train", "cmd_view"]
+__all__ = ["config_from_args", "cmd_run", "cmd_sweep", "cmd_sweep_planes", "cmd_multi", "cmd_train", "cmd_view"]
 
 
 def config_from_args(a):
@@ -110,6 +110,27 @@ def cmd_sweep(a) -> int:
     table = summarize(rows)
     print(table)
     _write_table(a.out, table)
+    return EXIT_TASKS_FAILED if failed else 0
+
+
+def cmd_sweep_planes(a) -> int:
+    """``warpmpm sweep-planes``: the plane-placement sweep on finite-element truths."""
+    from ..experiment.io import check_output_path
+    from ..experiment.plane_sweep import sweep_planes
+    from ..experiment.sweep import sweep_cases
+
+    cases = sweep_cases(a.labels, a.image, a.preset, a.phantom_seeds, a.phantom_resolution)
+    try:
+        seeds = [int(s) for s in a.truth_seeds.split(",")]
+    except ValueError:
+        raise InputError(f"--truth-seeds must be comma-separated integers, got {a.truth_seeds!r}") from None
+    step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
+    out = check_output_path(a.out, "--out")
+    rows, failed = sweep_planes(cases, seeds, [x for x in a.loads.split(",") if x], tuple(f for f in a.families.split(",") if f),
+                                a.positions, out, truth_cell_mm=a.truth_cell_mm, particle_step=step, scheduler=a.scheduler,
+                                workers=a.workers, progress=lambda m: print(m, file=sys.stderr))
+    done = [r for r in rows if not r.get("failure")]
+    print(f"{len(done)} placements scored in {out}" + (f"; {len(failed)} tasks failed" if failed else ""))
     return EXIT_TASKS_FAILED if failed else 0
 
 

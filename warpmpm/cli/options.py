@@ -169,6 +169,29 @@ def build_parser() -> argparse.ArgumentParser:
                    help="steps per estimate before it is reported not converged")
     s.add_argument("--out", default="runs/sweep.csv")
 
+    q = sub.add_parser("sweep-planes", help="cine-plane placements on finite-element truths (resumable CSV)",
+                       description="Where to image: for each case, truth seed and load, a finite-element truth is made and every "
+                       "placement of the cine planes (one sagittal plane across the pancreas; a sagittal plane across it with a "
+                       "coronal plane where it shows the most pancreas) is scored for the copy of the planes' motion, rigid "
+                       "tracking and the completion solve, every organ, beside what each organ shows on the planes. One CSV row "
+                       "per placement, resumable; the first placement of each family is the rule without a model (each plane "
+                       "where it shows the most pancreas).")
+    q.add_argument("--labels", default=None, help="a labelled planning scan (else the built-in phantom, one per --phantom-seeds)")
+    q.add_argument("--image", default=None, help="its image")
+    q.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"], help="label convention")
+    q.add_argument("--phantom-seeds", default="0", help="comma-separated phantom seeds when no --labels")
+    q.add_argument("--phantom-resolution", type=float, default=1.0, help="phantom voxel size factor (2: 8x fewer voxels)")
+    q.add_argument("--particle-step", type=int, default=None, help="in-plane particle sampling step (default 2 for the phantom, else 1)")
+    q.add_argument("--truth-seeds", default="0", help="comma-separated seeds of the finite-element truths (materials, breathing)")
+    q.add_argument("--loads", default="breathing", help="comma-separated loads of the truths, each '+'-joined (breathing, "
+                   "breathing+push, ...)")
+    q.add_argument("--families", default="sagittal,sagittal+coronal", help="placement families: sagittal, sagittal+coronal")
+    q.add_argument("--positions", type=int, default=5, help="sagittal positions across the pancreas, besides the rule's (default %(default)s)")
+    q.add_argument("--truth-cell-mm", type=float, default=None, help="the truth's mesh cell (mm; default: TruthConfig's)")
+    q.add_argument("--out", default="runs/planes.csv")
+    q.add_argument("--workers", type=int, default=1, help="parallel tasks (one per case x truth seed x load)")
+    q.add_argument("--scheduler", default=None, help="'local' for a Dask LocalCluster of --workers, or a Dask scheduler address")
+
     m = sub.add_parser("multi", parents=[case(), device(), tasks(), selector()], help="the paper's multi-direction protocol",
                        description="The paper's multi-direction validation (psdl, GT targets, driven particles excluded): "
                        "axial only, + coronal, + sagittal, + both, slices chosen by the selection models.")
