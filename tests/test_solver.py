@@ -311,3 +311,14 @@ def test_an_anisotropic_lattice_gets_more_than_one_layer_a_cell_and_the_fem_answ
     u = res.positions_mm - m.positions_mm
     assert res.settled
     assert np.linalg.norm(u[free] - u_fem[free]) / np.linalg.norm(u_fem[free]) < 0.05
+
+
+def test_a_flat_keyword_of_the_old_config_names_where_it_lives_now():
+    """SolverConfig became a composite: a setting given the old flat way is refused with its new place, not a bare
+    TypeError."""
+    with pytest.raises(InputError, match=r"contact -> SolverConfig\(explicit=ExplicitConfig\(contact=\.\.\.\)\)"):
+        SolverConfig(contact="sliding")
+    with pytest.raises(InputError, match=r"margin_mm -> SolverConfig\(grid=GridConfig\(margin_mm=\.\.\.\)\).*"
+                                         r"rigid_mode_acceleration -> SolverConfig\(acceleration=AccelerationConfig\(mode=\.\.\.\)\)"):
+        SolverConfig(margin_mm=5.0, rigid_mode_acceleration="off")
+    assert SolverConfig(grid=GridConfig(margin_mm=5.0)).grid.margin_mm == 5.0

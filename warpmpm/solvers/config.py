@@ -237,8 +237,30 @@ class AccelerationConfig:
             raise InputError(f"AccelerationConfig.mode must be 'auto', 'on' or 'off', got {self.mode!r}")
 
 
+#: the flat keywords of the SolverConfig before it became a composite, and where each lives now
+_MOVED = {**{k: f"GridConfig({k}=...)" for k in ("particles_per_cell", "cell_size_mm", "margin_mm", "wall_cells",
+                                                  "cell_at_least_gap", "min_layers_per_cell")},
+          **{k: f"ExplicitConfig({k}=...)" for k in ("cfl", "cfl_limit", "dt_s", "mass_scaling", "damping_per_s", "damping_factor",
+                                                      "damping_rule", "damping_bounds", "damping_memory_steps", "check_every",
+                                                      "contact", "friction", "bonded")},
+          "rigid_mode_acceleration": "AccelerationConfig(mode=...)", "rigid_mode_aggregate_mm": "AccelerationConfig(aggregate_mm=...)",
+          "rigid_mode_basis": "AccelerationConfig(basis=...)"}
+
+
+class _NamesMovedFields(type):
+    """Builds a SolverConfig, refusing a keyword of the flat config it was with the place the setting has now."""
+
+    def __call__(cls, *args, **kwargs):
+        moved = [k for k in kwargs if k in _MOVED]
+        if moved:
+            where = {"GridConfig": "grid", "ExplicitConfig": "explicit", "AccelerationConfig": "acceleration"}
+            raise InputError("SolverConfig is a composite now: " + "; ".join(
+                f"{k} -> SolverConfig({where[_MOVED[k].split('(')[0]]}={_MOVED[k]})" for k in moved))
+        return super().__call__(*args, **kwargs)
+
+
 @dataclass(frozen=True)
-class SolverConfig:
+class SolverConfig(metaclass=_NamesMovedFields):
     """How a frame's equilibrium is found, on which device, and each part's settings."""
 
     method: Literal["explicit", "quasistatic", "auto"] = "explicit"
