@@ -201,5 +201,5 @@ def sweep_planes(cases: list[dict], truth_seeds, loads, families=FAMILIES, n_pos
                     progress(f"{row['case']} truth seed {row['truth_seed']} {row['load']} {row['planes']}: {msg}")
 
         failed = run_tasks(plane_sweep_task, args, keep, workers=workers, scheduler=scheduler)
-        report_failures(failed, len(args))
+        report_failures(failed, len(args), "truth seed")
     return rows, failed

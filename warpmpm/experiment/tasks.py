@@ -14,9 +14,24 @@ import time
 __all__ = ["run_tasks", "report_failures"]
 
 
-def _exit_with_parent(parent_pid: int) -> None:
+def _exit_with_parent(parent_pid: int, warp_log_level: int | None = None) -> None:
     """Worker initializer: end this worker when the sweep that started it is gone (``kill -9`` of the
-    parent leaves no orphan workers simulating for nobody)."""
+    parent leaves no orphan workers simulating for nobody); and Warp as quiet as in the parent (no module-load lines
+    from every worker when the command line asked for none)."""
+    if warp_log_level is not None:
+        import warp as wp
+
+        wp.config.log_level = warp_log_level
+        if warp_log_level >= wp.LOG_ERROR:  # initialise with stderr muted: no "CUDA driver not found" line per worker
+            sys.stderr.flush()
+            saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+            try:
+                os.dup2(devnull, 2)
+                wp.init()
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                os.close(devnull)
 
     def watch():
         while True:
@@ -77,8 +92,11 @@ def _run_elsewhere(fn, args, take, workers, scheduler) -> None:
         import concurrent.futures as cf
         import multiprocessing as mp
 
+        level = None
+        if "warp" in sys.modules:
+            level = sys.modules["warp"].config.log_level
         with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_exit_with_parent,
-                                    initargs=(os.getpid(),)) as ex:
+                                    initargs=(os.getpid(), level)) as ex:
             futures = {ex.submit(fn, *a): a for a in args}
             try:
                 for fut in cf.as_completed(futures):
@@ -104,8 +122,9 @@ def _run_elsewhere(fn, args, take, workers, scheduler) -> None:
                 cluster.close()
 
 
-def report_failures(failed: list[tuple], n_tasks: int) -> None:
-    """One stderr line naming the (case, deformation) tasks that failed and why."""
+def report_failures(failed: list[tuple], n_tasks: int, second: str = "deformation") -> None:
+    """One stderr line naming the tasks that failed (their case and ``second`` argument: the deformation of a sweep, the
+    truth seed of a plane sweep) and why."""
     if failed:
         print(f"{len(failed)} of {n_tasks} tasks failed (re-run to retry them): "
-              + "; ".join(f"{a[0].get('name', 'case')} def{a[1]}: {m}" for a, m in failed), file=sys.stderr)
+              + "; ".join(f"{a[0].get('name', 'case')} {second} {a[1]}: {m}" for a, m in failed), file=sys.stderr)
