@@ -54,18 +54,9 @@ def _quiet(verbose: bool) -> None:
     import SimpleITK as sitk
 
     sitk.ProcessObject.SetGlobalWarningDisplay(False)
-    # Warp's native library prints "CUDA driver not found" straight to file descriptor 2 on a machine
-    # without a GPU, whatever the log level: initialise it with that descriptor muted (a run that asks
-    # for CUDA still gets a clear error from warpmpm when none is there).
-    sys.stderr.flush()
-    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 2)
-        wp.init()
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
+    from ..experiment.tasks import init_warp_muted
+
+    init_warp_muted()
 
 
 COMMANDS = {"run": cmd_run, "cine-info": cmd_cine_info, "sweep": cmd_sweep, "sweep-planes": cmd_sweep_planes, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,

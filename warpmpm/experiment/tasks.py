@@ -11,7 +11,24 @@ import sys
 import threading
 import time
 
-__all__ = ["run_tasks", "report_failures"]
+__all__ = ["init_warp_muted", "run_tasks", "report_failures"]
+
+
+def init_warp_muted() -> None:
+    """Initialise Warp with file descriptor 2 muted: its native library prints "CUDA driver not found" straight to it
+    on a machine without a GPU, whatever the log level (a run that asks for CUDA still gets a clear error from warpmpm
+    when none is there)."""
+    import warp as wp
+
+    sys.stderr.flush()
+    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def _exit_with_parent(parent_pid: int, warp_log_level: int | None = None) -> None:
@@ -22,16 +39,8 @@ def _exit_with_parent(parent_pid: int, warp_log_level: int | None = None) -> Non
         import warp as wp
 
         wp.config.log_level = warp_log_level
-        if warp_log_level >= wp.LOG_ERROR:  # initialise with stderr muted: no "CUDA driver not found" line per worker
-            sys.stderr.flush()
-            saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
-            try:
-                os.dup2(devnull, 2)
-                wp.init()
-            finally:
-                os.dup2(saved, 2)
-                os.close(saved)
-                os.close(devnull)
+        if warp_log_level >= wp.LOG_ERROR:  # no "CUDA driver not found" line per worker
+            init_warp_muted()
 
     def watch():
         while True:
