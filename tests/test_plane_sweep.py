@@ -27,8 +27,12 @@ def test_a_sweep_scores_every_placement_and_resumes(tmp_path):
     for family in ("sagittal", "sagittal+coronal"):
         fam = [r for r in table if r["family"] == family]
         assert fam[0]["rule"] == "True" and all(r["rule"] == "False" for r in fam[1:])
-        # the rule's plane shows the most pancreas of its family's sagittal positions
-        assert int(fam[0]["pancreas_on_planes"]) == max(int(r["pancreas_on_planes"]) for r in fam)
+    sag = [r for r in table if r["family"] == "sagittal"]
+    pairs = [r for r in table if r["family"] == "sagittal+coronal"]
+    # the rule's plane shows the most pancreas of the sagittal positions; the pairs hold it with every coronal plane
+    assert int(sag[0]["pancreas_on_planes"]) == max(int(r["pancreas_on_planes"]) for r in sag)
+    assert pairs[0]["planes"].split(",")[0] == sag[0]["planes"]
+    assert len(pairs) == len(sag) * len({r["planes"].split(",")[1] for r in pairs})
     for r in table:
         assert r["failure"] == ""
         for m in METHODS:

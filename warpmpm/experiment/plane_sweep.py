@@ -23,7 +23,6 @@ import numpy as np
 
 from ..errors import InputError, SimulationError
 from ..images import ORGANS
-from ..slices import in_plane_axes
 from .io import CsvAppender, read_rows
 from .tasks import report_failures, run_tasks
 
@@ -37,7 +36,7 @@ FAMILIES = ("sagittal", "sagittal+coronal")
 METHODS = ("initial", "copy", "rigid", "completion")
 
 _FEATURES = [f"{o}_{k}" for o in ORGANS for k in ("on_planes", "fraction_on_planes", "distance_to_planes_mm")]
-PLANE_SWEEP_FIELDS = (["case", "truth_seed", "load", "family", "planes", "rule", "frame", "pancreas_offset_mm"] + _FEATURES
+PLANE_SWEEP_FIELDS = (["case", "truth_seed", "load", "family", "planes", "rule", "frame", "sagittal_offset_mm", "coronal_offset_mm"] + _FEATURES
                       + [f"{m}_{o}_mm" for m in METHODS for o in ORGANS] + ["wall_s", "failure"])
 
 
@@ -47,7 +46,9 @@ def _row_key(r) -> tuple:
 
 def placement_labels(prep, model, family: str, n_positions: int) -> list[str]:
     """The ``--slices`` of a family's placements, the first the rule without a model (each plane where it shows the
-    most pancreas), then ``n_positions`` sagittal planes evenly across the pancreas."""
+    most pancreas). ``sagittal``: then up to ``n_positions`` sagittal planes evenly across the pancreas;
+    ``sagittal+coronal``: every pair of those sagittal planes with the coronal planes placed the same way across the
+    pancreas (up to ``(n_positions + 1) ** 2`` placements)."""
     if family not in FAMILIES:
         raise InputError(f"plane family {family!r}: use one of {', '.join(FAMILIES)}")
     pan = model.subset(("pancreas",))
@@ -61,35 +62,25 @@ def placement_labels(prep, model, family: str, n_positions: int) -> list[str]:
     sag = [prep.label("sagittal", k) for k in spread["sagittal"]]
     if family == "sagittal":
         return sag
-    return [f"{s},{prep.label('coronal', best['coronal'])}" for s in sag]
+    cor = [prep.label("coronal", k) for k in spread["coronal"]]
+    return [f"{s},{c}" for s in sag for c in cor]
 
 
 def plane_features(model, slices, idx: np.ndarray) -> dict:
-    """What a user knows of a placement before treatment: per organ the particles on the planes, their fraction of the
-    organ, and the distance (mm) from the organ's centroid to the nearest plane; and the sagittal plane's offset from
-    the pancreas's centroid along its normal (mm, signed: + toward the patient's left)."""
-    x = model.positions_mm
+    """What a user knows of a placement before treatment: per organ the particles on the planes (``idx``), and the
+    features of :func:`warpmpm.plane_placement.placement_features` (fraction of each organ on the planes, distance of
+    its centroid to the nearest plane, each plane's offset from the pancreas centroid); one code path with
+    ``warpmpm plan-planes``."""
+    from ..plane_placement import FEATURES, Placement, placement_features
+
     on = np.zeros(model.n, bool)
     on[idx] = True
-    planes = []
-    for s in slices:
-        e_u, e_v = in_plane_axes(model, s.orientation)
-        normal = np.cross(e_u, e_v)
-        normal /= np.linalg.norm(normal)
-        point = x[model.slice_mask(s.orientation, s.index)].mean(0)
-        planes.append((s.orientation, normal, point))
-    out = {}
-    for k, o in enumerate(model.organs):
-        sel = model.organ_index == k
-        c = x[sel].mean(0)
-        out[f"{o}_on_planes"] = int(np.sum(on & sel))
-        out[f"{o}_fraction_on_planes"] = float(np.mean(on[sel]))
-        out[f"{o}_distance_to_planes_mm"] = float(min(abs((c - p) @ n) for _, n, p in planes))
-    pc = x[model.organ_index == model.organs.index("pancreas")].mean(0)
-    sag = [(n, p) for o, n, p in planes if o == "sagittal"]
-    if sag:
-        n, p = sag[0]
-        out["pancreas_offset_mm"] = float((p - pc) @ (n * np.sign(n[0]) if n[0] != 0 else n))
+    out = {f"{o}_on_planes": int(np.sum(on & (model.organ_index == k))) for k, o in enumerate(model.organs)}
+    family = "sagittal+coronal" if len(slices) > 1 else "sagittal"
+    row = placement_features(model, [Placement(family, tuple(slices))])[0]
+    out |= {f: float(v) for f, v in zip(FEATURES, row) if f != "n_planes"}
+    if not any(s.orientation == "coronal" for s in slices):
+        out.pop("coronal_offset_mm")
     return out
 
 

@@ -1,0 +1,391 @@
+"""Where to place the cine planes: a regression of each organ's estimate error on what the planes show.
+
+A *placement* is one sagittal plane (MRIdian-like) or a sagittal and a coronal plane (Unity-like), each a voxel slice
+of the planning volume. Before treatment a user knows, for every placement, what each organ shows on the planes; the
+:class:`PlacementModel` predicts from that how much of each organ's motion the estimate will miss, so the placements
+can be ranked (``warpmpm plan-planes``).
+
+Features of a placement (:data:`FEATURES`), all computed from the planning scan's particle model
+(:func:`placement_features`):
+
+* ``n_planes``: 1 or 2;
+* ``sagittal_offset_mm`` / ``coronal_offset_mm``: the plane's signed distance from the pancreas centroid along the
+  world axis (LPS: sagittal + toward the patient's left, coronal + toward the posterior; 0 without that plane);
+* per organ ``<organ>_fraction_on_planes``: the fraction of its particles on the planes (a particle on both counts
+  once), and ``<organ>_distance_to_planes_mm``: the distance from its centroid to the nearest plane.
+
+Particle counts are left out on purpose: they scale with the voxel size and sampling step, which differ between the
+cases a model is trained on and the scan it is used on; fractions and distances do not.
+
+Target (per organ): the fraction of the organ's motion the estimate misses,
+``r = error(estimate) / error(no motion)`` (both mean particle errors in mm, on a finite-element truth,
+:mod:`warpmpm.experiment.plane_sweep`). It does not depend on how far the patient breathes, which a planning scan does
+not tell; a predicted error in mm is ``r`` times the organ's expected motion.
+
+The model is one XGBoost regressor per organ, tuned by Optuna on cross-validation folds that never split a case
+(:func:`train_placement_model`), saved as one JSON file holding the boosters and what they were trained on.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+from .images import ORGANS
+from .model import ParticleModel
+from .slices import DrivingSlice, orientation_image_axis
+
+__all__ = ["FAMILIES", "FEATURES", "DEFAULT_PLACEMENT_MODEL", "Placement", "enumerate_placements", "placement_features",
+           "PlacementModel", "PlacementTable", "train_placement_model", "placement_regret", "draw_placements"]
+
+#: placement families: one sagittal plane, or a sagittal and a coronal plane
+FAMILIES = ("sagittal", "sagittal+coronal")
+FEATURES = (("n_planes", "sagittal_offset_mm", "coronal_offset_mm")
+            + tuple(f"{o}_{k}" for o in ORGANS for k in ("fraction_on_planes", "distance_to_planes_mm")))
+#: the model shipped with the package (trained on the finite-element plane sweep; its report lies beside it)
+DEFAULT_PLACEMENT_MODEL = os.path.join(os.path.dirname(os.path.abspath(__file__)), "selectors", "plane_placement.json")
+_AXIS = {"sagittal": 0, "coronal": 1}  # the world (LPS) axis each plane's normal is signed along
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Cine planes of one placement: ``family`` and its slices (indices of the model's volume)."""
+
+    family: str
+    slices: tuple
+
+    def label(self, to_input=None) -> str:
+        """``"sagittal:40,coronal:62"``; ``to_input`` maps a slice to the input volume's indices (what users type)."""
+        return ",".join(str(to_input(s) if to_input else s) for s in self.slices)
+
+
+def _plane_geometry(model: ParticleModel, orientation: str):
+    """(image axis, world unit normal signed along the orientation's world axis, per-slice plane coordinate along it
+    in mm (nan where the slice holds no particle))."""
+    axis = orientation_image_axis(model.geometry, orientation)
+    normal = np.asarray(model.geometry.axis_world_direction(axis), dtype=np.float64)
+    normal = normal / np.linalg.norm(normal)
+    w = _AXIS[orientation]
+    if normal[w] < 0:
+        normal = -normal
+    k = model.voxel_ijk[:, axis].astype(np.int64)
+    size = model.geometry.size[axis]
+    counts = np.bincount(k, minlength=size)
+    coord = np.bincount(k, weights=model.positions_mm @ normal, minlength=size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        coord = np.where(counts > 0, coord / np.maximum(counts, 1), np.nan)
+    return axis, normal, coord
+
+
+def enumerate_placements(model: ParticleModel, families=FAMILIES, stride: int = 1) -> list[Placement]:
+    """Every placement whose planes each cut the pancreas (every ``stride``-th such slice); each family's first
+    placement is the rule without a model (every plane where it shows the most pancreas)."""
+    for f in families:
+        if f not in FAMILIES:
+            raise InputError(f"plane family {f!r}: use one of {', '.join(FAMILIES)}")
+    if "pancreas" not in model.organs:
+        raise InputError("choosing the planes needs the pancreas in the planning labels")
+    if int(stride) < 1:
+        raise InputError(f"the slice stride must be >= 1, got {stride}")
+    pan = model.organs.index("pancreas")
+    picks = {}
+    for o in ("sagittal", "coronal"):
+        counts = model.slice_counts(o)[:, pan]
+        on = np.nonzero(counts > 0)[0]
+        best = int(np.argmax(counts))
+        picks[o] = [best] + [int(k) for k in on[::int(stride)] if k != best]
+    out = []
+    for f in families:
+        if f == "sagittal":
+            out += [Placement(f, (DrivingSlice("sagittal", k),)) for k in picks["sagittal"]]
+        else:
+            out += [Placement(f, (DrivingSlice("sagittal", s), DrivingSlice("coronal", c)))
+                    for s in picks["sagittal"] for c in picks["coronal"]]
+    return out
+
+
+def placement_features(model: ParticleModel, placements: list[Placement]) -> np.ndarray:
+    """(n_placements, len(FEATURES)) features of the placements (module docstring); vectorised over placements: one
+    pass over the particles, then a few array look-ups per placement."""
+    if not placements:
+        raise InputError("no placement to describe")
+    n_org = len(model.organs)
+    org = model.organ_index.astype(np.int64)
+    size_org = np.bincount(org, minlength=n_org).astype(np.float64)
+    centroid = np.stack([model.positions_mm[org == i].mean(0) if size_org[i] else np.full(3, np.nan) for i in range(n_org)])
+    if "pancreas" not in model.organs:
+        raise InputError("the placement features need the pancreas in the model")
+    pc = centroid[model.organs.index("pancreas")]
+    geo = {o: _plane_geometry(model, o) for o in ("sagittal", "coronal")}
+    counts = {o: model.slice_counts(o).astype(np.float64) for o in ("sagittal", "coronal")}
+    a_s, a_c = geo["sagittal"][0], geo["coronal"][0]
+    n_s, n_c = model.geometry.size[a_s], model.geometry.size[a_c]
+    flat = (model.voxel_ijk[:, a_s].astype(np.int64) * n_c + model.voxel_ijk[:, a_c]) * n_org + org
+    both = np.bincount(flat, minlength=n_s * n_c * n_org).reshape(n_s, n_c, n_org).astype(np.float64)
+    idx = {"sagittal": np.full(len(placements), -1), "coronal": np.full(len(placements), -1)}
+    for r, p in enumerate(placements):
+        for sl in p.slices:
+            if sl.orientation not in geo:
+                raise InputError(f"placements are sagittal and coronal planes, not {sl.orientation}")
+            coord = geo[sl.orientation][2]
+            if not (0 <= sl.index < len(coord)) or not np.isfinite(coord[sl.index]):
+                raise InputError(f"{sl} holds no particle of the planning model")
+            idx[sl.orientation][r] = sl.index
+    X = np.zeros((len(placements), len(FEATURES)))
+    col = {f: i for i, f in enumerate(FEATURES)}
+    on = np.zeros((len(placements), n_org))
+    dist = np.full((len(placements), n_org), np.inf)
+    for o in ("sagittal", "coronal"):
+        has = idx[o] >= 0
+        k = idx[o][has]
+        _, normal, coord = geo[o]
+        on[has] += counts[o][k]
+        dist[has] = np.minimum(dist[has], np.abs((centroid @ normal)[None, :] - coord[k][:, None]))
+        X[has, col[f"{o}_offset_mm"]] = coord[k] - pc @ normal
+    pair = (idx["sagittal"] >= 0) & (idx["coronal"] >= 0)
+    on[pair] -= both[idx["sagittal"][pair], idx["coronal"][pair]]  # a particle on both planes counts once
+    X[:, col["n_planes"]] = (idx["sagittal"] >= 0).astype(float) + (idx["coronal"] >= 0)
+    for i, o in enumerate(model.organs):
+        if o in ORGANS:
+            X[:, col[f"{o}_fraction_on_planes"]] = on[:, i] / size_org[i] if size_org[i] else 0.0
+            X[:, col[f"{o}_distance_to_planes_mm"]] = np.where(np.isfinite(dist[:, i]), dist[:, i], 0.0)
+    return X
+
+
+@dataclass
+class PlacementTable:
+    """Sweep rows as features, per-organ targets (fraction of the motion missed) and groups."""
+
+    X: np.ndarray
+    missed: dict  #: organ -> (n,) fraction of the organ's motion the estimate misses
+    error_mm: dict  #: organ -> (n,) the estimate's mean error (mm)
+    motion_mm: dict  #: organ -> (n,) the organ's mean motion (mm): the error of no motion
+    cases: np.ndarray
+    groups: np.ndarray  #: case|truth seed|load|family: the placements one choice is made among
+    rule: np.ndarray  #: the rule without a model (each plane where it shows the most pancreas)
+    labels: list
+    method: str = "copy"
+
+    @staticmethod
+    def from_sweep(rows: list[dict], method: str = "copy") -> "PlacementTable":
+        """Rows of ``warpmpm sweep-planes`` (failed ones and organs without motion left out)."""
+        keep = [r for r in rows if not r.get("failure") and all(r.get(f"{method}_{o}_mm") not in (None, "") for o in ORGANS)]
+        if not keep:
+            raise InputError(f"no usable sweep row for method {method!r} (every row failed or lacks its errors)")
+        X = np.array([[_feature_value(r, f) for f in FEATURES] for r in keep], dtype=np.float64)
+        err = {o: np.array([float(r[f"{method}_{o}_mm"]) for r in keep]) for o in ORGANS}
+        mot = {o: np.array([float(r[f"initial_{o}_mm"]) for r in keep]) for o in ORGANS}
+        missed = {o: err[o] / np.maximum(mot[o], 1e-6) for o in ORGANS}
+        groups = np.array([f"{r['case']}|{r['truth_seed']}|{r['load']}|{r['family']}" for r in keep])
+        rule = np.array([str(r["rule"]) in ("True", "true", "1") for r in keep])
+        return PlacementTable(X, missed, err, mot, np.array([r["case"] for r in keep]), groups, rule,
+                              [r["planes"] for r in keep], method)
+
+
+def _feature_value(row: dict, name: str) -> float:
+    if name == "n_planes":
+        return float(len(str(row["planes"]).split(",")))
+    v = row.get(name)
+    return float(v) if v not in (None, "") else 0.0
+
+
+@dataclass
+class PlacementModel:
+    """Per-organ regressors of the fraction of the organ's motion the estimate misses (module docstring)."""
+
+    boosters: dict
+    method: str = "copy"
+    features: tuple = FEATURES
+    params: dict = field(default_factory=dict)
+    trained_on: dict = field(default_factory=dict)
+
+    @property
+    def organs(self) -> tuple:
+        return tuple(o for o in ORGANS if o in self.boosters)
+
+    def predict(self, X: np.ndarray) -> dict:
+        """organ -> (n,) predicted fraction of its motion missed (clipped at 0)."""
+        X = np.asarray(X, dtype=np.float32)
+        return {o: np.clip(self.boosters[o].inplace_predict(X), 0.0, None) for o in self.organs}
+
+    def rank(self, model: ParticleModel, families=FAMILIES, rank_by=("pancreas",), stride: int = 1):
+        """Placements best first by the mean predicted fraction missed over ``rank_by``: a list of
+        (placement, features row, {organ: predicted fraction}), and the wall time (s) of enumerating, describing
+        and predicting."""
+        bad = [o for o in rank_by if o not in self.organs]
+        if bad or not rank_by:
+            raise InputError(f"rank by organs of the model ({', '.join(self.organs)}), not {', '.join(bad) or 'none'}")
+        t0 = time.perf_counter()
+        placements = enumerate_placements(model, families, stride)
+        X = placement_features(model, placements)
+        pred = self.predict(X)
+        score = np.mean([pred[o] for o in rank_by], axis=0)
+        order = np.argsort(score, kind="stable")
+        wall = time.perf_counter() - t0
+        return [(placements[i], X[i], {o: float(pred[o][i]) for o in self.organs}) for i in order], wall
+
+    def save(self, path: str) -> None:
+        """One JSON file (the boosters as XGBoost JSON inside it), written beside its name and renamed when whole."""
+        folder = os.path.dirname(os.path.abspath(path))
+        if not os.path.isdir(folder):
+            raise InputError(f"output folder {folder} for the placement model does not exist")
+        doc = {"kind": "warpmpm plane-placement model", "target": "fraction of each organ's motion the estimate misses",
+               "method": self.method, "features": list(self.features), "params": self.params, "trained_on": self.trained_on,
+               "boosters": {o: bytes(b.save_raw("json")).decode() for o, b in self.boosters.items()}}
+        tmp = path + ".part"
+        with open(tmp, "w") as f:
+            json.dump(doc, f)
+        os.replace(tmp, path)
+
+    @staticmethod
+    def load(path: str = DEFAULT_PLACEMENT_MODEL) -> "PlacementModel":
+        import xgboost as xgb
+
+        if not os.path.exists(path):
+            raise InputError(f"plane-placement model {path} not found; train one with `warpmpm train-planes`")
+        with open(path) as f:
+            try:
+                doc = json.load(f)
+            except json.JSONDecodeError as exc:
+                raise InputError(f"{path} is not a plane-placement model (not JSON: {exc})") from None
+        if doc.get("kind") != "warpmpm plane-placement model":
+            raise InputError(f"{path} is not a plane-placement model (made by `warpmpm train-planes`)")
+        if tuple(doc["features"]) != FEATURES:
+            raise InputError(f"{path} was trained on other features than this warpmpm computes; retrain it")
+        boosters = {}
+        for o, raw in doc["boosters"].items():
+            b = xgb.Booster()
+            b.load_model(bytearray(raw.encode()))
+            b.set_param({"nthread": 1})
+            boosters[o] = b
+        return PlacementModel(boosters, doc["method"], tuple(doc["features"]), doc.get("params", {}), doc.get("trained_on", {}))
+
+
+def _fit(params: dict, rounds: int, X, y):
+    import xgboost as xgb
+
+    return xgb.train(params, xgb.DMatrix(np.asarray(X, np.float32), label=y, feature_names=list(FEATURES)),
+                     num_boost_round=int(rounds))
+
+
+def _group_folds(cases: np.ndarray, folds: int, seed: int):
+    uniq = np.random.default_rng(seed).permutation(np.unique(cases))
+    k = min(folds, len(uniq))
+    return [np.isin(cases, uniq[f::k]) for f in range(k)]
+
+
+def train_placement_model(table: PlacementTable, train: np.ndarray, *, organs=ORGANS, max_trials: int = 60,
+                          patience: int = 20, folds: int = 5, storage: str | None = None, study_name: str = "plane-placement",
+                          seed: int = 0) -> tuple[PlacementModel, dict]:
+    """Tune (Optuna, mean R2 of the pancreas target over folds that never split a case, on the ``train`` rows) and
+    train one regressor per organ with the tuned parameters. Returns the model and the tuning record."""
+    import optuna
+
+    from .selection import r2_score
+
+    if len(np.unique(table.cases[train])) < 2:
+        raise InputError("training the placement model needs at least two cases on the training side")
+    X, cases = table.X[train], table.cases[train]
+    fold_masks = _group_folds(cases, folds, seed)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(direction="maximize", storage=storage, study_name=study_name,
+                                load_if_exists=storage is not None, sampler=optuna.samplers.TPESampler(seed=seed))
+
+    def objective(trial):
+        params = {"objective": "reg:squarederror", "max_depth": trial.suggest_int("max_depth", 2, 6),
+                  "eta": trial.suggest_float("eta", 0.01, 0.3, log=True), "subsample": trial.suggest_float("subsample", 0.5, 1.0),
+                  "colsample_bytree": trial.suggest_float("colsample_bytree", 0.5, 1.0),
+                  "min_child_weight": trial.suggest_float("min_child_weight", 1.0, 20.0),
+                  "lambda": trial.suggest_float("lambda", 1e-3, 10.0, log=True), "seed": seed, "nthread": 2}
+        rounds = trial.suggest_int("rounds", 30, 400)
+        y = table.missed["pancreas"][train]
+        scores = []
+        for test in fold_masks:
+            b = _fit(params, rounds, X[~test], y[~test])
+            scores.append(r2_score(y[test], b.inplace_predict(np.asarray(X[test], np.float32))))
+        return float(np.nanmean(scores))
+
+    def stop_when_stale(study, trial):
+        if trial.number - study.best_trial.number >= patience:
+            study.stop()
+
+    t0 = time.perf_counter()
+    study.optimize(objective, n_trials=max(0, max_trials - len(study.trials)), callbacks=[stop_when_stale])
+    bp = dict(study.best_params)
+    rounds = bp.pop("rounds")
+    params = {"objective": "reg:squarederror", "seed": seed, "nthread": 2, **bp}
+    boosters = {o: _fit(params, rounds, X, table.missed[o][train]) for o in organs}
+    model = PlacementModel(boosters, table.method, FEATURES, {**params, "rounds": rounds},
+                           {"cases": sorted(set(cases.tolist())), "rows": int(train.sum())})
+    return model, {"trials": len(study.trials), "tuning_s": time.perf_counter() - t0, "best_cv_r2": float(study.best_value),
+                   "params": model.params}
+
+
+def placement_regret(table: PlacementTable, predicted: dict, mask: np.ndarray, organ: str = "pancreas",
+                     rank_by=("pancreas",)) -> dict:
+    """Per group in ``mask`` (a case, truth, load and family: the placements one choice is made among), how much worse
+    (mm of ``organ``'s error) the placement chosen by the model (lowest mean predicted fraction over ``rank_by``), the
+    rule without a model, and a placement drawn at random (expected) are than the best placement in hindsight."""
+    out = {}
+    for g in np.unique(table.groups[mask]):
+        sel = np.nonzero(mask & (table.groups == g))[0]
+        err = table.error_mm[organ][sel]
+        score = np.mean([predicted[o][sel] for o in rank_by], axis=0)
+        rule = sel[table.rule[sel]]
+        out[g] = {"model": float(err[np.argmin(score)] - err.min()),
+                  "rule": float(table.error_mm[organ][rule[0]] - err.min()) if len(rule) else float("nan"),
+                  "random": float(err.mean() - err.min()), "best_mm": float(err.min()), "worst_mm": float(err.max()),
+                  "n_placements": int(len(sel))}
+    return out
+
+
+_COLOURS = {"pancreas": "#d62728", "stomach": "#1f77b4", "duodenum": "#2ca02c", "left_kidney": "#9467bd"}
+
+
+def draw_placements(model: ParticleModel, ranked: list, path: str, to_input=None, top: int = 3) -> None:
+    """A PNG of the organs (particles projected on the axial and coronal planes, world mm, LPS) with the planes of the
+    ``top`` ranked placements drawn over them (solid: the first; dashed: the next)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(f"output folder {folder} for the picture does not exist")
+    x = model.positions_mm
+    step = max(1, model.n // 40000)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
+    views = (("axial projection (x: R->L, y: A->P)", 0, 1), ("coronal projection (x: R->L, z: I->S)", 0, 2))
+    for ax, (title, a, b) in zip(axes, views):
+        for o in sorted(model.organs, key=lambda o: o == "pancreas"):  # the pancreas drawn last, over its neighbours
+            sel = np.nonzero(model.organ_index == model.organs.index(o))[0][::step]
+            ax.scatter(x[sel, a], x[sel, b], s=2, c=_COLOURS.get(o, "grey"), label=o, alpha=0.5, linewidths=0)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel(f"{'xyz'[a]} (mm)")
+        ax.set_ylabel(f"{'xyz'[b]} (mm)")
+        ax.set_aspect("equal")
+        if b == 1:
+            ax.invert_yaxis()  # anterior up
+    for rank, (p, _, pred) in enumerate(ranked[:top]):
+        style = "-" if rank == 0 else "--"
+        for s in p.slices:
+            _, normal, coord = _plane_geometry(model, s.orientation)
+            w = _AXIS[s.orientation]
+            for ax, (_, a, b) in zip(axes, views):
+                if w == a:
+                    ax.axvline(coord[s.index], color="k", ls=style, lw=1.2 if rank == 0 else 0.8)
+                elif w == b:
+                    ax.axhline(coord[s.index], color="k", ls=style, lw=1.2 if rank == 0 else 0.8)
+        axes[0].plot([], [], "k" + style, label=f"#{rank + 1} {p.label(to_input)}")
+    axes[0].legend(fontsize=7, markerscale=6, loc="best")
+    fig.tight_layout()
+    tmp = path + ".part.png"
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, path)
