@@ -75,3 +75,20 @@ def test_the_command_writes_the_table_and_refuses_bad_seeds(tmp_path, capsys):
     assert main(["sweep-planes", "--truth-seeds", "x", "--out", str(tmp_path / "q.csv")]) == 2
     assert "--truth-seeds must be comma-separated integers" in capsys.readouterr().err
     assert not (tmp_path / "q.csv").exists()
+
+
+def test_positions_spread_over_the_slices_that_hold_pancreas_even_with_a_sampling_step():
+    """With every other voxel sampled, half the slices across the pancreas hold no particle: the positions are drawn
+    among those that do, so a sweep gets the positions it asked for."""
+    from warpmpm.experiment.case import prepare_case
+    from warpmpm.experiment.config import CaseConfig
+    from warpmpm.experiment.plane_sweep import placement_labels
+
+    prep = prepare_case(CaseConfig(device="cpu", phantom_resolution=2.0, particle_step=2))
+    model = prep.model("psdl")
+    pan = model.subset(("pancreas",))
+    for family, orientation in (("sagittal", "sagittal"), ("sagittal+coronal", "coronal")):
+        labels = placement_labels(prep, model, family, 4)
+        ks = sorted({s.index for lab in labels for s in prep.resolve_slices(model, lab) if s.orientation == orientation})
+        assert len(ks) >= 4  # the four positions asked for (and the rule's, when it is not one of them)
+        assert all(pan.slice_counts(orientation)[k, 0] > 0 for k in ks)

@@ -57,8 +57,9 @@ def placement_labels(prep, model, family: str, n_positions: int) -> list[str]:
         counts = pan.slice_counts(o)[:, 0]
         on = np.nonzero(counts > 0)[0]
         best[o] = int(np.argmax(counts))
-        picks = np.unique(np.round(np.linspace(on.min(), on.max(), max(n_positions, 1))).astype(int))
-        spread[o] = [best[o]] + [int(k) for k in picks if k != best[o] and counts[k] > 0]
+        # evenly across the slices that hold pancreas particles (with a sampling step some slices hold none)
+        picks = np.unique(on[np.round(np.linspace(0, len(on) - 1, max(n_positions, 1))).astype(int)])
+        spread[o] = [best[o]] + [int(k) for k in picks if k != best[o]]
     sag = [prep.label("sagittal", k) for k in spread["sagittal"]]
     if family == "sagittal":
         return sag
