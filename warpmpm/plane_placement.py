@@ -6,16 +6,19 @@ of the planning volume. Before treatment a user knows, for every placement, what
 can be ranked (``warpmpm plan-planes``).
 
 Features of a placement (:data:`FEATURES`), all computed from the planning scan's particle model
-(:func:`placement_features`):
+(:func:`placement_features`), per organ:
 
-* ``n_planes``: 1 or 2;
-* ``sagittal_offset_mm`` / ``coronal_offset_mm``: the plane's signed distance from the pancreas centroid along the
-  world axis (LPS: sagittal + toward the patient's left, coronal + toward the posterior; 0 without that plane);
-* per organ ``<organ>_fraction_on_planes``: the fraction of its particles on the planes (a particle on both counts
-  once), and ``<organ>_distance_to_planes_mm``: the distance from its centroid to the nearest plane.
+* ``<organ>_section_sagittal`` / ``_coronal``: how much of the organ the plane shows, as its particles on the plane
+  over those on the organ's largest section of that orientation (0: the plane misses it or there is no such plane;
+  1: the plane cuts its largest section);
+* ``<organ>_position_sagittal`` / ``_coronal``: where the plane cuts the organ, as the signed distance from the organ's
+  centroid along the world axis (LPS: sagittal + toward the patient's left, coronal + toward the posterior) over the
+  organ's half-extent along it (0 at the centroid, +-1 at its edges; missing without such a plane);
+* ``<organ>_distance_to_planes_mm``: the distance from its centroid to the nearest plane;
 
-Particle counts are left out on purpose: they scale with the voxel size and sampling step, which differ between the
-cases a model is trained on and the scan it is used on; fractions and distances do not.
+and ``n_planes`` (1 or 2). Particle counts and fractions of the organ are left out on purpose: they scale with the
+voxel size, the sampling step and the slice thickness, which differ between the cases a model is trained on and the
+scan it is used on; sections relative to the organ's largest and positions relative to its extent do not.
 
 Target (per organ): the fraction of the organ's motion the estimate misses,
 ``r = error(estimate) / error(no motion)`` (both mean particle errors in mm, on a finite-element truth,
@@ -40,13 +43,21 @@ from .images import ORGANS
 from .model import ParticleModel
 from .slices import DrivingSlice, orientation_image_axis
 
-__all__ = ["FAMILIES", "FEATURES", "DEFAULT_PLACEMENT_MODEL", "Placement", "enumerate_placements", "placement_features",
+__all__ = ["FAMILIES", "ORIENTATIONS", "FEATURES", "ORGAN_INPUTS", "MONOTONE", "organ_inputs", "DEFAULT_PLACEMENT_MODEL", "Placement", "enumerate_placements", "placement_features",
            "PlacementModel", "PlacementTable", "train_placement_model", "placement_regret", "draw_placements"]
 
 #: placement families: one sagittal plane, or a sagittal and a coronal plane
 FAMILIES = ("sagittal", "sagittal+coronal")
-FEATURES = (("n_planes", "sagittal_offset_mm", "coronal_offset_mm")
-            + tuple(f"{o}_{k}" for o in ORGANS for k in ("fraction_on_planes", "distance_to_planes_mm")))
+ORIENTATIONS = ("sagittal", "coronal")
+FEATURES = ("n_planes",) + tuple(f"{o}_{k}" for o in ORGANS for k in ("section_sagittal", "section_coronal", "position_sagittal",
+                                                                      "position_coronal", "distance_to_planes_mm"))
+#: what each organ's regressor reads of a placement: how much of that organ each plane shows, how far from its centroid
+#: each plane cuts it (|position|, in half-extents; a plane the placement lacks counts as far away) and the planes' count
+ORGAN_INPUTS = ("section_sagittal", "section_coronal", "abs_position_sagittal", "abs_position_coronal", "n_planes")
+#: the monotone constraints on them: more of the organ shown, or a second plane, never predicts a larger error; a plane
+#: further from the organ's centroid never a smaller one (what keeps a model trained on few cases physical)
+MONOTONE = (-1, -1, 1, 1, -1)
+_FAR = 10.0  # |position| of a plane the placement lacks (half-extents)
 #: the model shipped with the package (trained on the finite-element plane sweep; its report lies beside it)
 DEFAULT_PLACEMENT_MODEL = os.path.join(os.path.dirname(os.path.abspath(__file__)), "selectors", "plane_placement.json")
 _AXIS = {"sagittal": 0, "coronal": 1}  # the world (LPS) axis each plane's normal is signed along
@@ -94,7 +105,7 @@ def enumerate_placements(model: ParticleModel, families=FAMILIES, stride: int = 
         raise InputError(f"the slice stride must be >= 1, got {stride}")
     pan = model.organs.index("pancreas")
     picks = {}
-    for o in ("sagittal", "coronal"):
+    for o in ORIENTATIONS:
         counts = model.slice_counts(o)[:, pan]
         on = np.nonzero(counts > 0)[0]
         best = int(np.argmax(counts))
@@ -110,24 +121,20 @@ def enumerate_placements(model: ParticleModel, families=FAMILIES, stride: int = 
 
 
 def placement_features(model: ParticleModel, placements: list[Placement]) -> np.ndarray:
-    """(n_placements, len(FEATURES)) features of the placements (module docstring); vectorised over placements: one
-    pass over the particles, then a few array look-ups per placement."""
+    """(n_placements, len(FEATURES)) features of the placements (module docstring; NaN marks a plane the placement
+    does not have); vectorised over placements: one pass over the particles, then array look-ups."""
     if not placements:
         raise InputError("no placement to describe")
-    n_org = len(model.organs)
-    org = model.organ_index.astype(np.int64)
-    size_org = np.bincount(org, minlength=n_org).astype(np.float64)
-    centroid = np.stack([model.positions_mm[org == i].mean(0) if size_org[i] else np.full(3, np.nan) for i in range(n_org)])
     if "pancreas" not in model.organs:
         raise InputError("the placement features need the pancreas in the model")
-    pc = centroid[model.organs.index("pancreas")]
-    geo = {o: _plane_geometry(model, o) for o in ("sagittal", "coronal")}
-    counts = {o: model.slice_counts(o).astype(np.float64) for o in ("sagittal", "coronal")}
-    a_s, a_c = geo["sagittal"][0], geo["coronal"][0]
-    n_s, n_c = model.geometry.size[a_s], model.geometry.size[a_c]
-    flat = (model.voxel_ijk[:, a_s].astype(np.int64) * n_c + model.voxel_ijk[:, a_c]) * n_org + org
-    both = np.bincount(flat, minlength=n_s * n_c * n_org).reshape(n_s, n_c, n_org).astype(np.float64)
-    idx = {"sagittal": np.full(len(placements), -1), "coronal": np.full(len(placements), -1)}
+    n_org = len(model.organs)
+    org = model.organ_index.astype(np.int64)
+    size_org = np.bincount(org, minlength=n_org)
+    if np.any(size_org == 0):
+        raise InputError(f"the planning model holds no particle of {', '.join(np.array(model.organs)[size_org == 0])}")
+    centroid = np.stack([model.positions_mm[org == i].mean(0) for i in range(n_org)])
+    geo = {o: _plane_geometry(model, o) for o in ORIENTATIONS}
+    idx = {o: np.full(len(placements), -1) for o in ORIENTATIONS}
     for r, p in enumerate(placements):
         for sl in p.slices:
             if sl.orientation not in geo:
@@ -138,22 +145,31 @@ def placement_features(model: ParticleModel, placements: list[Placement]) -> np.
             idx[sl.orientation][r] = sl.index
     X = np.zeros((len(placements), len(FEATURES)))
     col = {f: i for i, f in enumerate(FEATURES)}
-    on = np.zeros((len(placements), n_org))
     dist = np.full((len(placements), n_org), np.inf)
-    for o in ("sagittal", "coronal"):
+    for o in ORIENTATIONS:
+        _, normal, coord = geo[o]
+        counts = model.slice_counts(o).astype(np.float64)
+        largest = counts.max(axis=0)
+        along = model.positions_mm @ normal
+        lo = np.array([along[org == i].min() for i in range(n_org)])
+        hi = np.array([along[org == i].max() for i in range(n_org)])
+        half = np.maximum(0.5 * (hi - lo), 1e-6)
         has = idx[o] >= 0
         k = idx[o][has]
-        _, normal, coord = geo[o]
-        on[has] += counts[o][k]
         dist[has] = np.minimum(dist[has], np.abs((centroid @ normal)[None, :] - coord[k][:, None]))
-        X[has, col[f"{o}_offset_mm"]] = coord[k] - pc @ normal
-    pair = (idx["sagittal"] >= 0) & (idx["coronal"] >= 0)
-    on[pair] -= both[idx["sagittal"][pair], idx["coronal"][pair]]  # a particle on both planes counts once
+        for i, name in enumerate(model.organs):
+            if name not in ORGANS:
+                continue
+            sec = np.zeros(len(placements))
+            sec[has] = counts[k, i] / largest[i]
+            pos = np.full(len(placements), np.nan)
+            pos[has] = (coord[k] - centroid[i] @ normal) / half[i]
+            X[:, col[f"{name}_section_{o}"]] = sec
+            X[:, col[f"{name}_position_{o}"]] = pos
     X[:, col["n_planes"]] = (idx["sagittal"] >= 0).astype(float) + (idx["coronal"] >= 0)
-    for i, o in enumerate(model.organs):
-        if o in ORGANS:
-            X[:, col[f"{o}_fraction_on_planes"]] = on[:, i] / size_org[i] if size_org[i] else 0.0
-            X[:, col[f"{o}_distance_to_planes_mm"]] = np.where(np.isfinite(dist[:, i]), dist[:, i], 0.0)
+    for i, name in enumerate(model.organs):
+        if name in ORGANS:
+            X[:, col[f"{name}_distance_to_planes_mm"]] = dist[:, i]
     return X
 
 
@@ -191,7 +207,10 @@ def _feature_value(row: dict, name: str) -> float:
     if name == "n_planes":
         return float(len(str(row["planes"]).split(",")))
     v = row.get(name)
-    return float(v) if v not in (None, "") else 0.0
+    if v is None:
+        raise InputError(f"the plane-sweep rows lack the feature column {name!r}: refresh them with "
+                         "`warpmpm sweep-planes --refresh-features` (same case options)")
+    return float(v) if v != "" else float("nan")
 
 
 @dataclass
@@ -209,9 +228,8 @@ class PlacementModel:
         return tuple(o for o in ORGANS if o in self.boosters)
 
     def predict(self, X: np.ndarray) -> dict:
-        """organ -> (n,) predicted fraction of its motion missed (clipped at 0)."""
-        X = np.asarray(X, dtype=np.float32)
-        return {o: np.clip(self.boosters[o].inplace_predict(X), 0.0, None) for o in self.organs}
+        """organ -> (n,) predicted fraction of its motion missed, from placement features ``X`` (:data:`FEATURES`)."""
+        return {o: np.exp(self.boosters[o].inplace_predict(organ_inputs(X, o))) for o in self.organs}
 
     def rank(self, model: ParticleModel, families=FAMILIES, rank_by=("pancreas",), stride: int = 1):
         """Placements best first by the mean predicted fraction missed over ``rank_by``: a list of
@@ -234,8 +252,10 @@ class PlacementModel:
         folder = os.path.dirname(os.path.abspath(path))
         if not os.path.isdir(folder):
             raise InputError(f"output folder {folder} for the placement model does not exist")
-        doc = {"kind": "warpmpm plane-placement model", "target": "fraction of each organ's motion the estimate misses",
-               "method": self.method, "features": list(self.features), "params": self.params, "trained_on": self.trained_on,
+        doc = {"kind": "warpmpm plane-placement model",
+               "target": "natural log of the fraction of each organ's motion the estimate misses",
+               "method": self.method, "features": list(self.features), "inputs": list(ORGAN_INPUTS),
+               "monotone": list(MONOTONE), "params": self.params, "trained_on": self.trained_on,
                "boosters": {o: bytes(b.save_raw("json")).decode() for o, b in self.boosters.items()}}
         tmp = path + ".part"
         with open(tmp, "w") as f:
@@ -255,7 +275,7 @@ class PlacementModel:
                 raise InputError(f"{path} is not a plane-placement model (not JSON: {exc})") from None
         if doc.get("kind") != "warpmpm plane-placement model":
             raise InputError(f"{path} is not a plane-placement model (made by `warpmpm train-planes`)")
-        if tuple(doc["features"]) != FEATURES:
+        if tuple(doc["features"]) != FEATURES or tuple(doc.get("inputs", ())) != ORGAN_INPUTS:
             raise InputError(f"{path} was trained on other features than this warpmpm computes; retrain it")
         boosters = {}
         for o, raw in doc["boosters"].items():
@@ -266,11 +286,33 @@ class PlacementModel:
         return PlacementModel(boosters, doc["method"], tuple(doc["features"]), doc.get("params", {}), doc.get("trained_on", {}))
 
 
+def organ_inputs(X: np.ndarray, organ: str) -> np.ndarray:
+    """(n, len(ORGAN_INPUTS)) what ``organ``'s regressor reads of placement features ``X``."""
+    X = np.asarray(X, dtype=np.float64)
+    col = {f: i for i, f in enumerate(FEATURES)}
+    out = np.empty((len(X), len(ORGAN_INPUTS)), dtype=np.float32)
+    for j, name in enumerate(ORGAN_INPUTS):
+        if name.startswith("abs_"):
+            v = np.abs(X[:, col[f"{organ}_{name[4:]}"]])
+            out[:, j] = np.where(np.isfinite(v), np.minimum(v, _FAR), _FAR)
+        elif name == "n_planes":
+            out[:, j] = X[:, col["n_planes"]]
+        else:
+            out[:, j] = X[:, col[f"{organ}_{name}"]]
+    return out
+
+
 def _fit(params: dict, rounds: int, X, y):
+    """One organ's regressor of the log fraction missed ``y`` on its inputs ``X`` (:func:`organ_inputs`)."""
     import xgboost as xgb
 
-    return xgb.train(params, xgb.DMatrix(np.asarray(X, np.float32), label=y, feature_names=list(FEATURES)),
+    params = {**params, "monotone_constraints": "(" + ",".join(str(m) for m in MONOTONE) + ")"}
+    return xgb.train(params, xgb.DMatrix(np.asarray(X, np.float32), label=y, feature_names=list(ORGAN_INPUTS)),
                      num_boost_round=int(rounds))
+
+
+def _log_missed(table: "PlacementTable", organ: str) -> np.ndarray:
+    return np.log(np.maximum(table.missed[organ], 1e-4))
 
 
 def _group_folds(cases: np.ndarray, folds: int, seed: int):
@@ -282,8 +324,9 @@ def _group_folds(cases: np.ndarray, folds: int, seed: int):
 def train_placement_model(table: PlacementTable, train: np.ndarray, *, organs=ORGANS, max_trials: int = 60,
                           patience: int = 20, folds: int = 5, storage: str | None = None, study_name: str = "plane-placement",
                           seed: int = 0) -> tuple[PlacementModel, dict]:
-    """Tune (Optuna, mean R2 of the pancreas target over folds that never split a case, on the ``train`` rows) and
-    train one regressor per organ with the tuned parameters. Returns the model and the tuning record."""
+    """Tune (Optuna: the mean over organs of the R2 of the log fraction missed, on folds that never split a case, of
+    the ``train`` rows) and train one regressor per organ with the tuned parameters (each on its own inputs,
+    :data:`ORGAN_INPUTS`, under :data:`MONOTONE`). Returns the model and the tuning record."""
     import optuna
 
     from .selection import r2_score
@@ -297,17 +340,18 @@ def train_placement_model(table: PlacementTable, train: np.ndarray, *, organs=OR
                                 load_if_exists=storage is not None, sampler=optuna.samplers.TPESampler(seed=seed))
 
     def objective(trial):
-        params = {"objective": "reg:squarederror", "max_depth": trial.suggest_int("max_depth", 2, 6),
+        params = {"objective": "reg:squarederror", "max_depth": trial.suggest_int("max_depth", 1, 4),
                   "eta": trial.suggest_float("eta", 0.01, 0.3, log=True), "subsample": trial.suggest_float("subsample", 0.5, 1.0),
                   "colsample_bytree": trial.suggest_float("colsample_bytree", 0.5, 1.0),
                   "min_child_weight": trial.suggest_float("min_child_weight", 1.0, 20.0),
                   "lambda": trial.suggest_float("lambda", 1e-3, 10.0, log=True), "seed": seed, "nthread": 2}
         rounds = trial.suggest_int("rounds", 30, 400)
-        y = table.missed["pancreas"][train]
         scores = []
-        for test in fold_masks:
-            b = _fit(params, rounds, X[~test], y[~test])
-            scores.append(r2_score(y[test], b.inplace_predict(np.asarray(X[test], np.float32))))
+        for o in organs:  # the mean over organs and folds of the R2 of the log fraction missed
+            Xo, y = organ_inputs(X, o), _log_missed(table, o)[train]
+            for test in fold_masks:
+                b = _fit(params, rounds, Xo[~test], y[~test])
+                scores.append(r2_score(y[test], b.inplace_predict(Xo[test])))
         return float(np.nanmean(scores))
 
     def stop_when_stale(study, trial):
@@ -319,26 +363,27 @@ def train_placement_model(table: PlacementTable, train: np.ndarray, *, organs=OR
     bp = dict(study.best_params)
     rounds = bp.pop("rounds")
     params = {"objective": "reg:squarederror", "seed": seed, "nthread": 2, **bp}
-    boosters = {o: _fit(params, rounds, X, table.missed[o][train]) for o in organs}
+    boosters = {o: _fit(params, rounds, organ_inputs(X, o), _log_missed(table, o)[train]) for o in organs}
     model = PlacementModel(boosters, table.method, FEATURES, {**params, "rounds": rounds},
                            {"cases": sorted(set(cases.tolist())), "rows": int(train.sum())})
     return model, {"trials": len(study.trials), "tuning_s": time.perf_counter() - t0, "best_cv_r2": float(study.best_value),
                    "params": model.params}
 
 
-def placement_regret(table: PlacementTable, predicted: dict, mask: np.ndarray, organ: str = "pancreas",
-                     rank_by=("pancreas",)) -> dict:
+def placement_regret(table: PlacementTable, predicted: dict, mask: np.ndarray, organs=("pancreas",)) -> dict:
     """Per group in ``mask`` (a case, truth, load and family: the placements one choice is made among), how much worse
-    (mm of ``organ``'s error) the placement chosen by the model (lowest mean predicted fraction over ``rank_by``), the
-    rule without a model, and a placement drawn at random (expected) are than the best placement in hindsight."""
+    the placement chosen by the model (lowest mean predicted fraction missed over ``organs``), the rule without a model
+    (each plane where it shows the most pancreas) and a placement drawn at random (expected) are than the best
+    placement in hindsight, in mm of the mean error over ``organs``."""
     out = {}
+    err_all = np.mean([table.error_mm[o] for o in organs], axis=0)
+    score_all = np.mean([predicted[o] for o in organs], axis=0)
     for g in np.unique(table.groups[mask]):
         sel = np.nonzero(mask & (table.groups == g))[0]
-        err = table.error_mm[organ][sel]
-        score = np.mean([predicted[o][sel] for o in rank_by], axis=0)
+        err, score = err_all[sel], score_all[sel]
         rule = sel[table.rule[sel]]
         out[g] = {"model": float(err[np.argmin(score)] - err.min()),
-                  "rule": float(table.error_mm[organ][rule[0]] - err.min()) if len(rule) else float("nan"),
+                  "rule": float(err_all[rule[0]] - err.min()) if len(rule) else float("nan"),
                   "random": float(err.mean() - err.min()), "best_mm": float(err.min()), "worst_mm": float(err.max()),
                   "n_placements": int(len(sel))}
     return out

@@ -1,10 +1,12 @@
-"""The ``warpmpm`` command: ``run | sweep | sweep-planes | multi | train | view | track | make-cine | make-truth |
-evaluate-track | cine-info``.
+"""The ``warpmpm`` command: ``run | sweep | sweep-planes | train-planes | plan-planes | multi | train | view | track |
+make-cine | make-truth | evaluate-track | cine-info``.
 
     warpmpm run                                  # the seed's experiment on the built-in phantom (= examples/seed_experiment.py)
     warpmpm run --labels L.nii.gz --image I.nii.gz --preset totalseg_mr --json out.json --rrd out.rrd
     warpmpm sweep --phantom-seeds 0,1 --organs all --out runs/sweep.csv --workers 2
     warpmpm sweep-planes --phantom-seeds 0,1 --truth-seeds 0,1 --out runs/planes.csv --workers 2
+    warpmpm train-planes runs/planes.csv --out runs/plane_placement.json
+    warpmpm plan-planes --image I.nii.gz --labels L.nii.gz --preset totalseg_mr --picture planes.png
     warpmpm multi --phantom-seeds 0,1 --out runs/multi.csv
     warpmpm train runs/sweep.csv --out runs/selection_error.json
     warpmpm view out.rrd [--summary | --screenshot out.png]
@@ -27,9 +29,10 @@ from ..errors import InputError, SimulationError
 from .exit_codes import EXIT_INPUT, EXIT_INTERRUPTED, EXIT_PIPE_CLOSED, EXIT_SIMULATION, EXIT_TASKS_FAILED
 from .experiment_commands import cmd_multi, cmd_run, cmd_sweep, cmd_sweep_planes, cmd_train, cmd_view, config_from_args
 from .options import build_parser
+from .plane_commands import cmd_plan_planes, cmd_train_planes
 from .track_commands import cmd_cine_info, cmd_evaluate_track, cmd_make_cine, cmd_make_truth, cmd_track
 
-__all__ = ["build_parser", "config_from_args", "cmd_run", "cmd_sweep", "cmd_sweep_planes", "cmd_multi", "cmd_train", "cmd_view",
+__all__ = ["build_parser", "config_from_args", "cmd_run", "cmd_sweep", "cmd_sweep_planes", "cmd_plan_planes", "cmd_train_planes", "cmd_multi", "cmd_train", "cmd_view",
            "cmd_track", "cmd_make_cine", "cmd_make_truth", "cmd_evaluate_track", "cmd_cine_info", "COMMANDS", "main", "run_main",
            "EXIT_TASKS_FAILED", "EXIT_INPUT", "EXIT_SIMULATION", "EXIT_INTERRUPTED", "EXIT_PIPE_CLOSED"]
 
@@ -59,7 +62,8 @@ def _quiet(verbose: bool) -> None:
     init_warp_muted()
 
 
-COMMANDS = {"run": cmd_run, "cine-info": cmd_cine_info, "sweep": cmd_sweep, "sweep-planes": cmd_sweep_planes, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
+COMMANDS = {"run": cmd_run, "cine-info": cmd_cine_info, "sweep": cmd_sweep, "sweep-planes": cmd_sweep_planes, "plan-planes": cmd_plan_planes,
+            "train-planes": cmd_train_planes, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
             "make-cine": cmd_make_cine, "make-truth": cmd_make_truth, "evaluate-track": cmd_evaluate_track}
 
 

@@ -126,6 +126,12 @@ def cmd_sweep_planes(a) -> int:
         raise InputError(f"--truth-seeds must be comma-separated integers, got {a.truth_seeds!r}") from None
     step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
     out = check_output_path(a.out, "--out")
+    if a.refresh_features:
+        from ..experiment.plane_sweep import refresh_features
+
+        n = refresh_features(out, cases, step, progress=lambda m: print(m, file=sys.stderr))
+        print(f"{n} rows of {out} refreshed with today's placement features")
+        return 0
     rows, failed = sweep_planes(cases, seeds, [x for x in a.loads.split(",") if x], tuple(f for f in a.families.split(",") if f),
                                 a.positions, out, truth_cell_mm=a.truth_cell_mm, particle_step=step, scheduler=a.scheduler,
                                 workers=a.workers, progress=lambda m: print(m, file=sys.stderr))

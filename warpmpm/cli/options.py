@@ -171,8 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     q = sub.add_parser("sweep-planes", help="cine-plane placements on finite-element truths (resumable CSV)",
                        description="Where to image: for each case, truth seed and load, a finite-element truth is made and every "
-                       "placement of the cine planes (one sagittal plane across the pancreas; a sagittal plane across it with a "
-                       "coronal plane where it shows the most pancreas) is scored for the copy of the planes' motion, rigid "
+                       "placement of the cine planes (one sagittal plane across the pancreas; a sagittal and a coronal plane across it, "
+                       "every pair of their positions) is scored for the copy of the planes' motion, rigid "
                        "tracking and the completion solve, every organ, beside what each organ shows on the planes. One CSV row "
                        "per placement, resumable; the first placement of each family is the rule without a model (each plane "
                        "where it shows the most pancreas).")
@@ -186,11 +186,13 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--loads", default="breathing", help="comma-separated loads of the truths, each '+'-joined (breathing, "
                    "breathing+push, ...)")
     q.add_argument("--families", default="sagittal,sagittal+coronal", help="placement families: sagittal, sagittal+coronal")
-    q.add_argument("--positions", type=int, default=5, help="sagittal positions across the pancreas, besides the rule's (default %(default)s)")
+    q.add_argument("--positions", type=int, default=5, help="positions of each plane across the pancreas, besides the rule's (default %(default)s)")
     q.add_argument("--truth-cell-mm", type=float, default=None, help="the truth's mesh cell (mm; default: TruthConfig's)")
     q.add_argument("--out", default="runs/planes.csv")
     q.add_argument("--workers", type=int, default=1, help="parallel tasks (one per case x truth seed x load)")
     q.add_argument("--scheduler", default=None, help="'local' for a Dask LocalCluster of --workers, or a Dask scheduler address")
+    q.add_argument("--refresh-features", action="store_true", help="run no truth: recompute the placement features of these "
+                   "cases' rows in --out from their planning scans (after the features changed) and rewrite it whole")
 
     m = sub.add_parser("multi", parents=[case(), device(), tasks(), selector()], help="the paper's multi-direction protocol",
                        description="The paper's multi-direction validation (psdl, GT targets, driven particles excluded): "
@@ -211,6 +213,60 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--splits", default="case,row", help="which splits to tune and report; the model saved is the first")
     t.add_argument("--out", default="selection_model.json")
     t.add_argument("--report", default=None, help="write the report as JSON here")
+
+    pp = sub.add_parser("plan-planes", help="where to image: the cine-plane placements ranked for a planning scan",
+                        description="Where to image: every placement of the cine planes across the pancreas (one sagittal "
+                        "plane; a sagittal and a coronal plane) ranked by the plane-placement model's predicted error, with "
+                        "what each organ shows on the planes; the rule without a model (each plane where it shows the most "
+                        "pancreas) is named with its rank. Slice indices are the planning scan's (what --slices and the "
+                        "MR-Linac take). With no arguments: the built-in phantom.")
+    pi = pp.add_argument_group("planning scan")
+    pi.add_argument("--image", default=None, help="planning image (a file, or a DICOM series folder with --rtstruct)")
+    pi.add_argument("--labels", default=None, help="its organ label map (else the built-in phantom)")
+    pi.add_argument("--rtstruct", default=None, help="the planning RT Structure Set instead of --labels")
+    pi.add_argument("--structure", action="append", default=[], metavar="ORGAN=NAME",
+                    help="which structure of --rtstruct is an organ, e.g. --structure pancreas=GTV_Panc")
+    pi.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"], help="label convention")
+    pi.add_argument("--phantom-seed", type=int, default=0, help="the built-in phantom's seed (no --labels)")
+    pi.add_argument("--phantom-resolution", type=float, default=1.0, help="phantom voxel size factor (2: 8x fewer voxels)")
+    pi.add_argument("--particle-step", type=int, default=None, help="in-plane particle sampling step (default 2 for the "
+                    "phantom, else 1)")
+    pr = pp.add_argument_group("ranking")
+    pr.add_argument("--families", default="sagittal,sagittal+coronal", help="placement families: sagittal (one plane, "
+                    "MRIdian-like), sagittal+coronal (Unity-like)")
+    pr.add_argument("--rank-by", default="pancreas", help="comma-separated organs whose mean predicted error ranks the "
+                    "placements (pancreas, stomach, duodenum, left_kidney)")
+    pr.add_argument("--top", type=int, default=10, help="placements printed (default %(default)s)")
+    pr.add_argument("--stride", type=int, default=1, help="every n-th slice across the pancreas (default every slice)")
+    pr.add_argument("--motion-mm", type=float, default=None, help="the organs' expected motion (mm): predicted errors in mm "
+                    "instead of fractions of the motion")
+    pr.add_argument("--model", default=None, help="a plane-placement model of `warpmpm train-planes` (default: the shipped one)")
+    ps = pp.add_argument_group("simulation (minutes, once at planning)")
+    ps.add_argument("--simulate", action="store_true", help="rank by the error of copying the planes' motion on a "
+                    "finite-element breathing truth of this scan (a grid of --positions placements) instead of the model")
+    ps.add_argument("--positions", type=int, default=4, help="with --simulate: positions of each plane across the pancreas "
+                    "besides the rule's (default %(default)s)")
+    ps.add_argument("--truth-seed", type=int, default=0, help="with --simulate: the truth's seed (materials, breathing)")
+    ps.add_argument("--truth-cell-mm", type=float, default=None, help="with --simulate: the truth's mesh cell (mm; default: "
+                    "TruthConfig's; coarser is faster)")
+    po = pp.add_argument_group("outputs")
+    po.add_argument("--picture", default=None, help="PNG of the best placements' planes over the organs")
+    po.add_argument("--json", default=None, help="every placement ranked, with its predictions and features")
+    pp.add_argument("--verbose", action="store_true", help="show Warp's and ITK's own messages")
+
+    tp = sub.add_parser("train-planes", help="train the plane-placement model from plane-sweep CSVs",
+                        description="Train the plane-placement model (one XGBoost regressor per organ, Optuna-tuned on "
+                        "folds by case) from `warpmpm sweep-planes` CSVs; report it split by case (held-out cases, and "
+                        "leave one case out) against the rule without a model.")
+    tp.add_argument("csv", nargs="+")
+    tp.add_argument("--test-cases", default=None, help="comma-separated cases to hold out (default: a random quarter)")
+    tp.add_argument("--method", default="copy", choices=["copy", "completion", "rigid"], help="whose error the model predicts")
+    tp.add_argument("--max-trials", type=int, default=60)
+    tp.add_argument("--patience", type=int, default=20, help="stop tuning after this many trials without a better CV R2")
+    tp.add_argument("--storage", default=None, help="Optuna storage, e.g. sqlite:///runs/planes.db (tuning resumes from it)")
+    tp.add_argument("--out", default="plane_placement.json")
+    tp.add_argument("--report", default=None, help="write the report as JSON here")
+    tp.add_argument("--verbose", action="store_true", help="show Warp's and ITK's own messages")
 
     k = sub.add_parser("track", parents=[device()], help="track a cine series: 2D frames in, 3D organ motion out",
                        description="Track a cine series (a folder of 2D NIfTI/MHA/DICOM frames placed in 3D) from a planning "

@@ -15,6 +15,7 @@ seed, load) so it runs here, in a process pool or on Dask (:func:`warpmpm.experi
 
 from __future__ import annotations
 
+import csv
 import os
 import tempfile
 from dataclasses import replace
@@ -23,11 +24,12 @@ import numpy as np
 
 from ..errors import InputError, SimulationError
 from ..images import ORGANS
+from ..plane_placement import FEATURES as PLACEMENT_FEATURES
 from .io import CsvAppender, read_rows
 from .tasks import report_failures, run_tasks
 
 __all__ = ["FAMILIES", "METHODS", "PLANE_SWEEP_FIELDS", "placement_labels", "plane_features", "plane_sweep_task",
-           "sweep_planes"]
+           "refresh_features", "sweep_planes"]
 
 #: the placement families: ``sagittal`` (one plane, MRIdian-like) and ``sagittal+coronal`` (Unity-like, the coronal
 #: plane where it shows the most pancreas)
@@ -35,8 +37,10 @@ FAMILIES = ("sagittal", "sagittal+coronal")
 #: the methods scored for every placement
 METHODS = ("initial", "copy", "rigid", "completion")
 
-_FEATURES = [f"{o}_{k}" for o in ORGANS for k in ("on_planes", "fraction_on_planes", "distance_to_planes_mm")]
-PLANE_SWEEP_FIELDS = (["case", "truth_seed", "load", "family", "planes", "rule", "frame", "sagittal_offset_mm", "coronal_offset_mm"] + _FEATURES
+_COUNTS = [f"{o}_on_planes" for o in ORGANS]
+#: the features of :mod:`warpmpm.plane_placement` (``n_planes`` is read from ``planes``)
+_FEATURES = [f for f in PLACEMENT_FEATURES if f != "n_planes"]
+PLANE_SWEEP_FIELDS = (["case", "truth_seed", "load", "family", "planes", "rule", "frame"] + _COUNTS + _FEATURES
                       + [f"{m}_{o}_mm" for m in METHODS for o in ORGANS] + ["wall_s", "failure"])
 
 
@@ -69,26 +73,68 @@ def placement_labels(prep, model, family: str, n_positions: int) -> list[str]:
 
 def plane_features(model, slices, idx: np.ndarray) -> dict:
     """What a user knows of a placement before treatment: per organ the particles on the planes (``idx``), and the
-    features of :func:`warpmpm.plane_placement.placement_features` (fraction of each organ on the planes, distance of
-    its centroid to the nearest plane, each plane's offset from the pancreas centroid); one code path with
-    ``warpmpm plan-planes``."""
-    from ..plane_placement import FEATURES, Placement, placement_features
+    features of :func:`warpmpm.plane_placement.placement_features` (one code path with ``warpmpm plan-planes``)."""
+    from ..plane_placement import Placement, placement_features
 
     on = np.zeros(model.n, bool)
     on[idx] = True
     out = {f"{o}_on_planes": int(np.sum(on & (model.organ_index == k))) for k, o in enumerate(model.organs)}
     family = "sagittal+coronal" if len(slices) > 1 else "sagittal"
     row = placement_features(model, [Placement(family, tuple(slices))])[0]
-    out |= {f: float(v) for f, v in zip(FEATURES, row) if f != "n_planes"}
-    if not any(s.orientation == "coronal" for s in slices):
-        out.pop("coronal_offset_mm")
-    return out
+    return out | {f: float(v) for f, v in zip(PLACEMENT_FEATURES, row) if f != "n_planes"}
+
+
+def _case_model(case: dict, particle_step: int):
+    """The prepared case and the particle model a sweep task builds for ``case`` (the features' planning model)."""
+    from .case import prepare_case
+    from .config import CaseConfig
+    from .sweep import case_config
+
+    cfg = case_config(CaseConfig(device="cpu", particle_step=int(particle_step)), case)
+    prep = prepare_case(cfg)
+    return prep, prep.model(cfg.organs)
+
+
+def refresh_features(out_csv: str, cases: list[dict], particle_step: int = 1, progress=print) -> int:
+    """Recompute the feature columns of the rows of ``cases`` in a plane-sweep CSV from their planning scans (after
+    the features changed; the truths and errors are kept) and rewrite it whole with today's columns. Returns the
+    number of rows refreshed."""
+    from ..plane_placement import Placement, placement_features
+    from .io import CsvAppender
+
+    if not os.path.exists(out_csv):
+        raise InputError(f"plane-sweep CSV {out_csv} not found")
+    with CsvAppender(out_csv, PLANE_SWEEP_FIELDS) as out:  # holds the lock: no sweep writes meanwhile
+        out.f.close()  # rewritten whole below, not appended to
+        rows = read_rows(out_csv)
+        n = 0
+        for case in cases:
+            name = case.get("name", "case")
+            mine = [r for r in rows if r["case"] == name]
+            if not mine:
+                progress(f"{name}: no row in {out_csv}")
+                continue
+            prep, model = _case_model(case, particle_step)
+            placements = [Placement(r["family"], tuple(prep.resolve_slices(model, r["planes"]))) for r in mine]
+            X = placement_features(model, placements)
+            for r, x in zip(mine, X):
+                r.update({f: repr(float(v)) for f, v in zip(PLACEMENT_FEATURES, x) if f != "n_planes"})
+            n += len(mine)
+            progress(f"{name}: {len(mine)} rows refreshed")
+        tmp = out_csv + ".part"
+        with open(tmp, "w", newline="") as f:
+            w = csv.DictWriter(f, PLANE_SWEEP_FIELDS, extrasaction="ignore")
+            w.writeheader()
+            w.writerows(rows)
+        os.replace(tmp, out_csv)
+    return n
 
 
 def plane_sweep_task(case: dict, truth_seed: int, load: str, families: tuple, n_positions: int, done: frozenset = frozenset(),
-                     truth_cell_mm: float | None = None, particle_step: int = 1) -> list[dict]:
+                     truth_cell_mm: float | None = None, particle_step: int = 1, methods: tuple = METHODS) -> list[dict]:
     """All rows of one (case, truth seed, load) not in ``done``; a plain function of picklable arguments (runs inline,
-    in a process pool or on Dask). A placement whose run fails is kept as a row with its ``failure``."""
+    in a process pool or on Dask). A placement whose run fails is kept as a row with its ``failure``. ``methods``:
+    those of :data:`METHODS` to score (``("initial", "copy")`` skips the completion's set-up)."""
     import time
 
     from ..fields import write_field
@@ -129,7 +175,10 @@ def plane_sweep_task(case: dict, truth_seed: int, load: str, families: tuple, n_
     gt = make_ground_truth(prep, cfg)
     model = prep.model(cfg.organs)
     gt_pos = gt_for_model(gt, model)
-    completion = CompletionModel(prep.case, cfg.preset, model, CompletionConfig())
+    bad = sorted(set(methods) - set(METHODS))
+    if bad:
+        raise InputError(f"methods {', '.join(bad)}: use {', '.join(METHODS)}")
+    completion = CompletionModel(prep.case, cfg.preset, model, CompletionConfig()) if "completion" in methods else None
     rows = []
     for family in families:
         for k, label in enumerate(placement_labels(prep, model, family, n_positions)):
@@ -144,9 +193,12 @@ def plane_sweep_task(case: dict, truth_seed: int, load: str, families: tuple, n_
                 idx, targets, axes = tg.idx, tg.targets_mm, tg.drive.axes
                 copy = tg.combined_mm if tg.combined_mm is not None else propagate(
                     model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]))
-                positions = {"initial": model.positions_mm, "copy": copy,
-                             "rigid": baseline_positions(model, idx, targets, axes)["rigid"],
-                             "completion": complete(completion, idx, targets, axes, copy).positions_mm}
+                positions = {"initial": model.positions_mm, "copy": copy}
+                if "rigid" in methods:
+                    positions["rigid"] = baseline_positions(model, idx, targets, axes)["rigid"]
+                if completion is not None:
+                    positions["completion"] = complete(completion, idx, targets, axes, copy).positions_mm
+                positions = {m: v for m, v in positions.items() if m in methods}
             except (InputError, SimulationError) as exc:
                 rows.append(row | {"failure": str(exc)})
                 continue
