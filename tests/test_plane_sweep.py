@@ -47,6 +47,17 @@ def test_a_sweep_scores_every_placement_and_resumes(tmp_path):
     rows2, _ = sweep_planes([PHANTOM], [0], ["breathing"], ("sagittal", "sagittal+coronal"), 2, out, truth_cell_mm=12.0,
                             progress=None)
     assert len(read(out)) == len(table) == len(rows2)
+    # refreshing the features from the planning scan gives what the sweep wrote (one code path), errors untouched
+    from warpmpm.experiment.plane_sweep import refresh_features
+    from warpmpm.plane_placement import FEATURES
+
+    (tmp_path / "old.csv").write_text(open(out).read())
+    assert refresh_features(out, [PHANTOM], 1, progress=None) == len(table)
+    again = read(out)
+    for a, b in zip(table, again):
+        assert a["planes"] == b["planes"] and a["copy_pancreas_mm"] == b["copy_pancreas_mm"]
+        for f in FEATURES[1:]:
+            assert float(b[f]) == pytest.approx(float(a[f]), abs=1e-5, nan_ok=True), f
 
 
 def test_bad_sweep_options_are_refused(tmp_path):

@@ -112,7 +112,8 @@ def refresh_features(out_csv: str, cases: list[dict], particle_step: int = 1, pr
             name = case.get("name", "case")
             mine = [r for r in rows if r["case"] == name]
             if not mine:
-                progress(f"{name}: no row in {out_csv}")
+                if progress:
+                    progress(f"{name}: no row in {out_csv}")
                 continue
             prep, model = _case_model(case, particle_step)
             placements = [Placement(r["family"], tuple(prep.resolve_slices(model, r["planes"]))) for r in mine]
@@ -120,7 +121,8 @@ def refresh_features(out_csv: str, cases: list[dict], particle_step: int = 1, pr
             for r, x in zip(mine, X):
                 r.update({f: repr(float(v)) for f, v in zip(PLACEMENT_FEATURES, x) if f != "n_planes"})
             n += len(mine)
-            progress(f"{name}: {len(mine)} rows refreshed")
+            if progress:
+                progress(f"{name}: {len(mine)} rows refreshed")
         tmp = out_csv + ".part"
         with open(tmp, "w", newline="") as f:
             w = csv.DictWriter(f, PLANE_SWEEP_FIELDS, extrasaction="ignore")
