@@ -75,6 +75,15 @@ def plan_planes(model, placement_model, families, rank_by, top: int, stride: int
         lines.append(f"{family}: best #{pos + 1} {ranked[pos][0].label()}; the rule without a model (most pancreas on each "
                      f"plane) {ranked[rule_pos][0].label()} ranks #{rule_pos + 1}")
     lines.append(f"{len(ranked)} placements ranked in {wall * 1e3:.1f} ms")
+    held = placement_model.trained_on.get("held_out")
+    if held:
+        for objective, fams in held["regret_mm"].items():
+            if objective == "all_organs" and rank_by == ("pancreas",):
+                continue
+            lines.append(f"measured on held-out cases ({', '.join(held['cases'])}), judged by "
+                         f"{objective.replace('_', ' ')}: mean regret (mm) " + "; ".join(
+                             f"{fam} model {v['model']:.2f}, rule {v['rule']:.2f}" for fam, v in fams.items()))
+        lines.append("for a ranking by this scan's own simulated motion (minutes), use --simulate")
     return ranked, rules, wall, lines
 
 

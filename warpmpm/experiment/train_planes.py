@@ -177,7 +177,12 @@ def train_planes(paths, *, test_cases=None, method: str = "copy", out: str | Non
                          f"{v['simulated']['mean']:.3f}/{v['simulated']['max']:.3f}, rule {v['rule']['mean']:.3f}/"
                          f"{v['rule']['max']:.3f}, random {v['random']['mean']:.3f}/{v['random']['max']:.3f}")
     if out:
-        model.trained_on |= {"report": os.path.basename(report) if report else None, "method": method}
+        held = rep["held_out"]
+        model.trained_on |= {"report": os.path.basename(report) if report else None, "method": method,
+                             "held_out": {"cases": held["cases"], "pancreas_r2_fraction": held["pancreas_r2_fraction"],
+                                          "regret_mm": {obj: {fam: held[obj][f"mean_regret_mm_{fam}"] for fam in
+                                                              ("sagittal", "sagittal+coronal") if f"mean_regret_mm_{fam}" in held[obj]}
+                                                        for obj in OBJECTIVES}}}
         model.save(out)
         progress(f"saved {out}")
     if report:
