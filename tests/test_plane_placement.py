@@ -143,7 +143,7 @@ def test_plan_planes_ranks_the_phantom_with_the_shipped_model(tmp_path, capsys):
 
     assert PlacementModel.load(DEFAULT_PLACEMENT_MODEL).organs == tuple(ORGANS)
     out = tmp_path / "rank.json"
-    assert main(["plan-planes", "--phantom-resolution", "3", "--top", "3", "--json", str(out),
+    assert main(["plan-planes", "--method", "model", "--phantom-resolution", "3", "--top", "3", "--json", str(out),
                  "--picture", str(tmp_path / "planes.png")]) == 0
     text = capsys.readouterr().out
     assert "the rule without a model" in text and "placements ranked in" in text
@@ -155,9 +155,9 @@ def test_plan_planes_ranks_the_phantom_with_the_shipped_model(tmp_path, capsys):
     assert set(doc["rule"]) == {"sagittal", "sagittal+coronal"}
     assert (tmp_path / "planes.png").stat().st_size > 10_000
     # bad input: one error line, nothing written
-    assert main(["plan-planes", "--phantom-resolution", "3", "--families", "axial", "--json", str(tmp_path / "x.json")]) == 2
+    assert main(["plan-planes", "--method", "model", "--phantom-resolution", "3", "--families", "axial", "--json", str(tmp_path / "x.json")]) == 2
     assert "--families 'axial'" in capsys.readouterr().err and not (tmp_path / "x.json").exists()
-    assert main(["plan-planes", "--phantom-resolution", "3", "--rank-by", "liver"]) == 2
+    assert main(["plan-planes", "--method", "model", "--phantom-resolution", "3", "--rank-by", "liver"]) == 2
     assert "rank by organs of the model" in capsys.readouterr().err
 
 
@@ -194,7 +194,7 @@ def test_train_planes_reports_split_by_case_and_saves_a_model_plan_planes_reads(
     assert rep["held_out"]["cases"] == ["phantom3"] and PlacementModel.load(str(model)).trained_on["cases"] == [
         "phantom0", "phantom1", "phantom2"]
     assert rep["held_out"]["pancreas_r2_fraction"] > 0.5
-    assert main(["plan-planes", "--phantom-resolution", "3", "--model", str(model), "--top", "1"]) == 0
+    assert main(["plan-planes", "--method", "model", "--phantom-resolution", "3", "--model", str(model), "--top", "1"]) == 0
     # refused: too few cases, an unknown test case, a CSV that is not a plane sweep
     few = tmp_path / "few.csv"
     write_sweep_csv(synthetic_table(2), few)
@@ -208,14 +208,14 @@ def test_train_planes_reports_split_by_case_and_saves_a_model_plan_planes_reads(
     assert "not a plane-sweep CSV" in capsys.readouterr().err
 
 
-def test_plan_planes_simulate_ranks_by_the_error_on_a_truth_of_the_scan(tmp_path, capsys):
-    """``--simulate``: a finite-element breathing truth of the (coarse) phantom; every placement of the grid scored by
+def test_plan_planes_ranks_by_the_error_on_a_truth_of_the_scan(tmp_path, capsys):
+    """The default (``--method simulate``): a finite-element breathing truth of the (coarse) phantom; every placement of the grid scored by
     the copy of its planes' true in-plane motion, best first; the best sees the pancreas's motion far better than no
     motion, and the rule without a model is named."""
     from warpmpm.cli import main
 
     out = tmp_path / "sim.json"
-    assert main(["plan-planes", "--simulate", "--phantom-resolution", "3", "--positions", "1", "--families", "sagittal",
+    assert main(["plan-planes", "--phantom-resolution", "3", "--positions", "1", "--families", "sagittal",
                  "--truth-cell-mm", "12", "--json", str(out)]) == 0
     assert "placements simulated in" in capsys.readouterr().out
     doc = json.loads(out.read_text())
@@ -223,7 +223,7 @@ def test_plan_planes_simulate_ranks_by_the_error_on_a_truth_of_the_scan(tmp_path
     assert len(errs) >= 2 and errs == sorted(errs)
     assert errs[0] < 0.25 * doc["motion_mm"]["pancreas"] and doc["motion_mm"]["pancreas"] > 5.0
     assert doc["rule"]["sagittal"]["rank"] >= 1
-    assert main(["plan-planes", "--simulate", "--positions", "0"]) == 2
+    assert main(["plan-planes", "--positions", "0"]) == 2
     assert "--positions must be >= 1" in capsys.readouterr().err
 
 

@@ -215,10 +215,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--report", default=None, help="write the report as JSON here")
 
     pp = sub.add_parser("plan-planes", help="where to image: the cine-plane placements ranked for a planning scan",
-                        description="Where to image: every placement of the cine planes across the pancreas (one sagittal "
-                        "plane; a sagittal and a coronal plane) ranked by the plane-placement model's predicted error, with "
-                        "what each organ shows on the planes; the rule without a model (each plane where it shows the most "
-                        "pancreas) is named with its rank. Slice indices are the planning scan's (what --slices and the "
+                        description="Where to image: placements of the cine planes across the pancreas (one sagittal "
+                        "plane; a sagittal and a coronal plane) ranked by each organ's error, simulated on a finite-element "
+                        "breathing truth of this scan (default) or predicted by the plane-placement model (--method model); "
+                        "the rule without a model (each plane where it shows the most pancreas) is named with its rank. Slice indices are the planning scan's (what --slices and the "
                         "MR-Linac take). With no arguments: the built-in phantom.")
     pi = pp.add_argument_group("planning scan")
     pi.add_argument("--image", default=None, help="planning image (a file, or a DICOM series folder with --rtstruct)")
@@ -232,6 +232,10 @@ def build_parser() -> argparse.ArgumentParser:
     pi.add_argument("--particle-step", type=int, default=None, help="in-plane particle sampling step (default 2 for the "
                     "phantom, else 1)")
     pr = pp.add_argument_group("ranking")
+    pr.add_argument("--method", default="simulate", choices=["simulate", "model"],
+                    help="simulate (default): rank a grid of placements by the error of copying their planes' motion on a "
+                    "finite-element breathing truth of this scan (minutes); model: rank every placement by the placement "
+                    "model's prediction (under 100 ms; measured no better than the rule, see its report)")
     pr.add_argument("--families", default="sagittal,sagittal+coronal", help="placement families: sagittal (one plane, "
                     "MRIdian-like), sagittal+coronal (Unity-like)")
     pr.add_argument("--rank-by", default="pancreas", help="comma-separated organs whose mean predicted error ranks the "
@@ -241,14 +245,12 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--motion-mm", type=float, default=None, help="the organs' expected motion (mm): predicted errors in mm "
                     "instead of fractions of the motion")
     pr.add_argument("--model", default=None, help="a plane-placement model of `warpmpm train-planes` (default: the shipped one)")
-    ps = pp.add_argument_group("simulation (minutes, once at planning)")
-    ps.add_argument("--simulate", action="store_true", help="rank by the error of copying the planes' motion on a "
-                    "finite-element breathing truth of this scan (a grid of --positions placements) instead of the model")
-    ps.add_argument("--positions", type=int, default=4, help="with --simulate: positions of each plane across the pancreas "
-                    "besides the rule's (default %(default)s)")
-    ps.add_argument("--truth-seed", type=int, default=0, help="with --simulate: the truth's seed (materials, breathing)")
-    ps.add_argument("--truth-cell-mm", type=float, default=None, help="with --simulate: the truth's mesh cell (mm; default: "
-                    "TruthConfig's; coarser is faster)")
+    ps = pp.add_argument_group("simulation (--method simulate: minutes, once at planning)")
+    ps.add_argument("--positions", type=int, default=4, help="positions of each plane across the pancreas besides the "
+                    "rule's (default %(default)s)")
+    ps.add_argument("--truth-seed", type=int, default=0, help="the truth's seed (materials, breathing)")
+    ps.add_argument("--truth-cell-mm", type=float, default=None, help="the truth's mesh cell (mm; default: TruthConfig's; "
+                    "coarser is faster)")
     po = pp.add_argument_group("outputs")
     po.add_argument("--picture", default=None, help="PNG of the best placements' planes over the organs")
     po.add_argument("--json", default=None, help="every placement ranked, with its predictions and features")

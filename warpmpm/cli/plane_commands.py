@@ -83,7 +83,7 @@ def plan_planes(model, placement_model, families, rank_by, top: int, stride: int
             lines.append(f"measured on held-out cases ({', '.join(held['cases'])}), judged by "
                          f"{objective.replace('_', ' ')}: mean regret (mm) " + "; ".join(
                              f"{fam} model {v['model']:.2f}, rule {v['rule']:.2f}" for fam, v in fams.items()))
-        lines.append("for a ranking by this scan's own simulated motion (minutes), use --simulate")
+        lines.append("for a ranking by this scan's own simulated motion (minutes), use --method simulate (the default)")
     return ranked, rules, wall, lines
 
 
@@ -104,7 +104,7 @@ def cmd_plan_planes(a) -> int:
     for path, option in ((a.json, "--json"), (a.picture, "--picture")):
         if path:
             check_output_path(path, option)
-    if a.simulate:
+    if a.method == "simulate":
         return _simulate(a, families, rank_by)
     placement_model = PlacementModel.load(a.model or DEFAULT_PLACEMENT_MODEL)
     _, model, _ = _planning_model(a)
@@ -142,7 +142,7 @@ def _simulation_case(a, case, work: str) -> dict:
 
 
 def _simulate(a, families, rank_by) -> int:
-    """``plan-planes --simulate``: a finite-element breathing truth of the planning scan, every placement of the grid
+    """``plan-planes --method simulate``: a finite-element breathing truth of the planning scan, every placement of the grid
     scored by the copy of its planes' true in-plane motion, ranked by the simulated error."""
     import tempfile
     import time
