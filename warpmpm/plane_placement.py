@@ -329,7 +329,7 @@ def train_placement_model(table: PlacementTable, train: np.ndarray, *, organs=OR
     :data:`ORGAN_INPUTS`, under :data:`MONOTONE`). Returns the model and the tuning record."""
     import optuna
 
-    from .selection import r2_score
+    from .selection import r2_score, stop_when_stale, suggest_xgb_params
 
     if len(np.unique(table.cases[train])) < 2:
         raise InputError("training the placement model needs at least two cases on the training side")
@@ -340,12 +340,8 @@ def train_placement_model(table: PlacementTable, train: np.ndarray, *, organs=OR
                                 load_if_exists=storage is not None, sampler=optuna.samplers.TPESampler(seed=seed))
 
     def objective(trial):
-        params = {"objective": "reg:squarederror", "max_depth": trial.suggest_int("max_depth", 1, 4),
-                  "eta": trial.suggest_float("eta", 0.01, 0.3, log=True), "subsample": trial.suggest_float("subsample", 0.5, 1.0),
-                  "colsample_bytree": trial.suggest_float("colsample_bytree", 0.5, 1.0),
-                  "min_child_weight": trial.suggest_float("min_child_weight", 1.0, 20.0),
-                  "lambda": trial.suggest_float("lambda", 1e-3, 10.0, log=True), "seed": seed, "nthread": 2}
-        rounds = trial.suggest_int("rounds", 30, 400)
+        params, rounds = suggest_xgb_params(trial, seed, max_depth=(1, 4), min_child_weight=(1.0, 20.0), rounds=(30, 400),
+                                            nthread=2)
         scores = []
         for o in organs:  # the mean over organs and folds of the R2 of the log fraction missed
             Xo, y = organ_inputs(X, o), _log_missed(table, o)[train]
@@ -354,12 +350,8 @@ def train_placement_model(table: PlacementTable, train: np.ndarray, *, organs=OR
                 scores.append(r2_score(y[test], b.inplace_predict(Xo[test])))
         return float(np.nanmean(scores))
 
-    def stop_when_stale(study, trial):
-        if trial.number - study.best_trial.number >= patience:
-            study.stop()
-
     t0 = time.perf_counter()
-    study.optimize(objective, n_trials=max(0, max_trials - len(study.trials)), callbacks=[stop_when_stale])
+    study.optimize(objective, n_trials=max(0, max_trials - len(study.trials)), callbacks=[stop_when_stale(patience)])
     bp = dict(study.best_params)
     rounds = bp.pop("rounds")
     params = {"objective": "reg:squarederror", "seed": seed, "nthread": 2, **bp}

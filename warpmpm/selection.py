@@ -30,8 +30,8 @@ from .model import ParticleModel
 
 __all__ = ["SELECTOR_DIR", "DEFAULT_SELECTOR", "DEFAULT_PLANE_SELECTOR", "FEATURES", "COUNT_FEATURES",
            "HIGHER_IS_BETTER", "raw_features", "standardise", "candidates", "r2_score", "rmse", "TrainingTable",
-           "percentile_rank", "split_by_case", "split_by_row", "ConditionSelector", "tune_and_train",
-           "within_group_scores", "regret", "baseline_regret"]
+           "percentile_rank", "split_by_case", "split_by_row", "ConditionSelector", "suggest_xgb_params", "stop_when_stale",
+           "tune_and_train", "within_group_scores", "regret", "baseline_regret"]
 
 #: The selectors behind the figures of docs/results.md, shipped with the package: the axial slice and combination
 #: model (error target) and the sagittal/coronal Dice-rank model (their training reports lie beside them).
@@ -291,6 +291,26 @@ def _cv_r2(params, rounds, X, y, folds: int, seed: int, features=FEATURES) -> fl
     return float(np.nanmean(scores))
 
 
+def suggest_xgb_params(trial, seed: int, *, max_depth=(2, 8), min_child_weight=(1.0, 10.0), rounds=(50, 400),
+                       nthread: int = 1) -> tuple[dict, int]:
+    """An Optuna trial's XGBoost parameters (squared error; depth, learning rate, row and column sampling, child weight,
+    L2) and boosting rounds, within the given ranges."""
+    params = {"objective": "reg:squarederror", "max_depth": trial.suggest_int("max_depth", *max_depth),
+              "eta": trial.suggest_float("eta", 0.01, 0.3, log=True), "subsample": trial.suggest_float("subsample", 0.5, 1.0),
+              "colsample_bytree": trial.suggest_float("colsample_bytree", 0.5, 1.0),
+              "min_child_weight": trial.suggest_float("min_child_weight", *min_child_weight),
+              "lambda": trial.suggest_float("lambda", 1e-3, 10.0, log=True), "seed": seed, "nthread": nthread}
+    return params, trial.suggest_int("rounds", *rounds)
+
+
+def stop_when_stale(patience: int):
+    """An Optuna callback that stops a study ``patience`` trials after its best."""
+    def callback(study, trial):
+        if trial.number - study.best_trial.number >= patience:
+            study.stop()
+    return callback
+
+
 def tune_and_train(table: TrainingTable, *, split: str = "case", patience: int = 100, max_trials: int = 1000, folds: int = 5,
                    storage: str | None = None, study_name: str = "warpmpm-selection", seed: int = 0,
                    test_fraction: float = 0.2, test_cases=None) -> tuple[ConditionSelector, dict]:
@@ -320,22 +340,12 @@ def tune_and_train(table: TrainingTable, *, split: str = "case", patience: int =
                                 sampler=optuna.samplers.TPESampler(seed=seed))
 
     def objective(trial):
-        params = {"objective": "reg:squarederror", "max_depth": trial.suggest_int("max_depth", 2, 8),
-                  "eta": trial.suggest_float("eta", 0.01, 0.3, log=True), "subsample": trial.suggest_float("subsample", 0.5, 1.0),
-                  "colsample_bytree": trial.suggest_float("colsample_bytree", 0.5, 1.0),
-                  "min_child_weight": trial.suggest_float("min_child_weight", 1.0, 10.0),
-                  "lambda": trial.suggest_float("lambda", 1e-3, 10.0, log=True), "seed": seed, "nthread": 1}
-        rounds = trial.suggest_int("rounds", 50, 400)
+        params, rounds = suggest_xgb_params(trial, seed)
         return _cv_r2(params, rounds, Xtr, ytr, folds, seed, table.features)
-
-    def stop_when_stale(study, trial):
-        best = study.best_trial.number
-        if trial.number - best >= patience:
-            study.stop()
 
     done_before = len(study.trials)
     t0 = time.perf_counter()
-    study.optimize(objective, n_trials=max(0, max_trials - done_before), callbacks=[stop_when_stale])
+    study.optimize(objective, n_trials=max(0, max_trials - done_before), callbacks=[stop_when_stale(patience)])
     tuning_s = time.perf_counter() - t0
     bp = dict(study.best_params)
     rounds = bp.pop("rounds")
