@@ -412,8 +412,11 @@ def draw_placements(model: ParticleModel, ranked: list, path: str, to_input=None
     for rank, (p, _, pred) in enumerate(ranked[:top]):
         style = "-" if rank == 0 else "--"
         for s in p.slices:
-            _, normal, coord = _plane_geometry(model, s.orientation)
+            axis = orientation_image_axis(model.geometry, s.orientation)
+            ijk = np.zeros(3)
+            ijk[axis] = s.index
             w = _AXIS[s.orientation]
+            coord = {s.index: float(model.geometry.index_to_world(ijk[None, :])[0][w])}  # the slice's plane (mm)
             for ax, (_, a, b) in zip(axes, views):
                 if w == a:
                     ax.axvline(coord[s.index], color="k", ls=style, lw=1.2 if rank == 0 else 0.8)
