@@ -242,3 +242,15 @@ def test_the_simulated_selector_is_judged_on_another_truth_of_the_same_scan():
     assert sim["n_pairs"] == 2 and sim["pancreas_r2_fraction"] == pytest.approx(1.0)
     v = sim["pancreas"]["sagittal"]
     assert v["simulated"]["max"] == 0.0 and v["rule"]["mean"] == pytest.approx(0.75)  # (0.5 + 1.0) / 2
+
+
+def test_plan_planes_refuses_a_scan_without_all_four_organs(tmp_path, capsys):
+    from warpmpm.cli import main
+    from warpmpm.images import write_case
+
+    case = make_phantom(resolution=3.0)
+    case.labels[case.labels == case.label_map["left_kidney"]] = 0
+    write_case(case, str(tmp_path / "labels.nii.gz"), str(tmp_path / "image.nii.gz"))
+    assert main(["plan-planes", "--method", "model", "--labels", str(tmp_path / "labels.nii.gz"),
+                 "--image", str(tmp_path / "image.nii.gz"), "--json", str(tmp_path / "r.json")]) == 2
+    assert "lack left_kidney" in capsys.readouterr().err and not (tmp_path / "r.json").exists()
