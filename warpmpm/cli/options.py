@@ -234,7 +234,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr = pp.add_argument_group("ranking")
     pr.add_argument("--method", default="simulate", choices=["simulate", "model"],
                     help="simulate (default): rank a grid of placements by the error of copying their planes' motion on a "
-                    "finite-element breathing truth of this scan (minutes); model: rank every placement by the placement "
+                    "finite-element breathing truth of this scan (about a minute); model: rank every placement by the placement "
                     "model's prediction (under 100 ms; measured no better than the rule, see its report)")
     pr.add_argument("--families", default="sagittal,sagittal+coronal", help="placement families: sagittal (one plane, "
                     "MRIdian-like), sagittal+coronal (Unity-like)")
@@ -245,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--motion-mm", type=float, default=None, help="the organs' expected motion (mm): predicted errors in mm "
                     "instead of fractions of the motion")
     pr.add_argument("--model", default=None, help="a plane-placement model of `warpmpm train-planes` (default: the shipped one)")
-    ps = pp.add_argument_group("simulation (--method simulate: minutes, once at planning)")
+    ps = pp.add_argument_group("simulation (--method simulate: about a minute, once at planning)")
     ps.add_argument("--positions", type=int, default=4, help="positions of each plane across the pancreas besides the "
                     "rule's (default %(default)s)")
     ps.add_argument("--truth-seed", type=int, default=0, help="the truth's seed (materials, breathing)")

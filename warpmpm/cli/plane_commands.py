@@ -83,7 +83,7 @@ def plan_planes(model, placement_model, families, rank_by, top: int, stride: int
             lines.append(f"measured on held-out cases ({', '.join(held['cases'])}), judged by "
                          f"{objective.replace('_', ' ')}: mean regret (mm) " + "; ".join(
                              f"{fam} model {v['model']:.2f}, rule {v['rule']:.2f}" for fam, v in fams.items()))
-        lines.append("for a ranking by this scan's own simulated motion (minutes), use --method simulate (the default)")
+        lines.append("for a ranking by this scan's own simulated motion (about a minute), use --method simulate (the default)")
     return ranked, rules, wall, lines
 
 
