@@ -183,8 +183,11 @@ def write_sweep_csv(table, path):
 def test_train_planes_reports_split_by_case_and_saves_a_model_plan_planes_reads(tmp_path, capsys):
     from warpmpm.cli import main
 
-    sweep = tmp_path / "planes.csv"
-    write_sweep_csv(synthetic_table(4), sweep)
+    import gzip
+
+    write_sweep_csv(synthetic_table(4), tmp_path / "planes.csv")
+    sweep = tmp_path / "planes.csv.gz"  # a kept sweep is gzipped (benchmarks/results/plane_sweep.csv.gz)
+    sweep.write_bytes(gzip.compress((tmp_path / "planes.csv").read_bytes()))
     model, report = tmp_path / "m.json", tmp_path / "r.json"
     assert main(["train-planes", str(sweep), "--test-cases", "phantom3", "--max-trials", "3", "--patience", "3",
                  "--out", str(model), "--report", str(report)]) == 0

@@ -21,6 +21,7 @@ pancreas and its organs at risk (the model then ranks by the mean predicted frac
 from __future__ import annotations
 
 import csv
+import gzip
 import json
 import os
 
@@ -42,7 +43,8 @@ def read_sweep_rows(paths) -> list[dict]:
     for path in paths:
         if not os.path.exists(path):
             raise InputError(f"plane-sweep CSV {path} not found; make one with `warpmpm sweep-planes`")
-        with open(path, newline="") as f:
+        opener = gzip.open if path.endswith(".gz") else open
+        with opener(path, "rt", newline="") as f:
             part = list(csv.DictReader(f))
         if part and "family" not in part[0]:
             raise InputError(f"{path} is not a plane-sweep CSV (no 'family' column); make one with `warpmpm sweep-planes`")
