@@ -43,7 +43,7 @@ from .images import ORGANS
 from .model import ParticleModel
 from .slices import DrivingSlice, orientation_image_axis
 
-__all__ = ["FAMILIES", "ORIENTATIONS", "FEATURES", "ORGAN_INPUTS", "MONOTONE", "organ_inputs", "DEFAULT_PLACEMENT_MODEL", "Placement", "enumerate_placements", "placement_features",
+__all__ = ["FAMILIES", "ORIENTATIONS", "FEATURES", "ORGAN_INPUTS", "MONOTONE", "organ_inputs", "pancreas_slices", "is_rule", "DEFAULT_PLACEMENT_MODEL", "Placement", "enumerate_placements", "placement_features",
            "PlacementModel", "PlacementTable", "train_placement_model", "placement_regret", "draw_placements"]
 
 #: placement families: one sagittal plane, or a sagittal and a coronal plane
@@ -93,6 +93,25 @@ def _plane_geometry(model: ParticleModel, orientation: str):
     return axis, normal, coord
 
 
+def pancreas_slices(model: ParticleModel, orientation: str, n_positions: int | None = None, stride: int = 1) -> list[int]:
+    """Slices of ``orientation`` that cut the pancreas, the one with the most pancreas first (the rule without a
+    model), then every ``stride``-th such slice or, with ``n_positions``, that many spread evenly over them (with a
+    sampling step some slices hold no particle: the positions are drawn among those that do)."""
+    counts = model.slice_counts(orientation)[:, model.organs.index("pancreas")]
+    on = np.nonzero(counts > 0)[0]
+    best = int(np.argmax(counts))
+    if n_positions is not None:
+        on = np.unique(on[np.round(np.linspace(0, len(on) - 1, max(int(n_positions), 1))).astype(int)])
+    else:
+        on = on[::int(stride)]
+    return [best] + [int(k) for k in on if k != best]
+
+
+def is_rule(row: dict) -> bool:
+    """Whether a plane-sweep row (a CSV row or a fresh one) is its family's rule placement."""
+    return str(row["rule"]) in ("True", "true", "1")
+
+
 def enumerate_placements(model: ParticleModel, families=FAMILIES, stride: int = 1) -> list[Placement]:
     """Every placement whose planes each cut the pancreas (every ``stride``-th such slice); each family's first
     placement is the rule without a model (every plane where it shows the most pancreas)."""
@@ -103,13 +122,7 @@ def enumerate_placements(model: ParticleModel, families=FAMILIES, stride: int = 
         raise InputError("choosing the planes needs the pancreas in the planning labels")
     if int(stride) < 1:
         raise InputError(f"the slice stride must be >= 1, got {stride}")
-    pan = model.organs.index("pancreas")
-    picks = {}
-    for o in ORIENTATIONS:
-        counts = model.slice_counts(o)[:, pan]
-        on = np.nonzero(counts > 0)[0]
-        best = int(np.argmax(counts))
-        picks[o] = [best] + [int(k) for k in on[::int(stride)] if k != best]
+    picks = {o: pancreas_slices(model, o, stride=stride) for o in ORIENTATIONS}
     out = []
     for f in families:
         if f == "sagittal":
@@ -198,7 +211,7 @@ class PlacementTable:
         mot = {o: np.array([float(r[f"initial_{o}_mm"]) for r in keep]) for o in ORGANS}
         missed = {o: err[o] / np.maximum(mot[o], 1e-6) for o in ORGANS}
         groups = np.array([f"{r['case']}|{r['truth_seed']}|{r['load']}|{r['family']}" for r in keep])
-        rule = np.array([str(r["rule"]) in ("True", "true", "1") for r in keep])
+        rule = np.array([is_rule(r) for r in keep])
         return PlacementTable(X, missed, err, mot, np.array([r["case"] for r in keep]), groups, rule,
                               [r["planes"] for r in keep], method)
 

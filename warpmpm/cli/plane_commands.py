@@ -46,7 +46,7 @@ def _planning_model(a):
 
 def plan_planes(model, placement_model, families, rank_by, top: int, stride: int = 1, motion_mm: float | None = None):
     """Rank the placements; returns (ranked, rule entries per family, wall seconds, printable lines)."""
-    from ..plane_placement import FEATURES
+    from ..plane_placement import FEATURES, pancreas_slices
 
     ranked, wall = placement_model.rank(model, families, rank_by, stride)
     organs = placement_model.organs
@@ -65,8 +65,7 @@ def plan_planes(model, placement_model, families, rank_by, top: int, stride: int
 
     lines += [fmt(i + 1, e) for i, e in enumerate(ranked[:top])]
     rules = {}
-    pan = model.organs.index("pancreas")
-    best = {o: int(model.slice_counts(o)[:, pan].argmax()) for o in ("sagittal", "coronal")}
+    best = {o: pancreas_slices(model, o)[0] for o in ("sagittal", "coronal")}  # the rule's slices
     for family in families:
         pos = next(i for i, e in enumerate(ranked) if e[0].family == family)  # the family's best
         rule_pos = next(i for i, e in enumerate(ranked) if e[0].family == family
@@ -153,7 +152,7 @@ def _simulate(a, families, rank_by) -> int:
     from ..experiment.io import write_json_atomic
     from ..experiment.plane_sweep import plane_sweep_task
     from ..images import ORGANS
-    from ..plane_placement import Placement, draw_placements
+    from ..plane_placement import Placement, draw_placements, is_rule
     from ..slices import parse_slices
 
     if a.positions < 1:
@@ -189,7 +188,7 @@ def _simulate(a, families, rank_by) -> int:
         fam = [i for i, r in enumerate(ranked) if r["family"] == family]
         if not fam:
             continue
-        rule = next(i for i in fam if r_is_rule(ranked[i]))
+        rule = next(i for i in fam if is_rule(ranked[i]))
         rules[family] = {"rank": rule + 1, "planes": ranked[rule]["planes"]}
         lines.append(f"{family}: best #{fam[0] + 1} {ranked[fam[0]]['planes']} ({score[order][fam[0]]:.2f} mm); the rule without "
                      f"a model (most pancreas on each plane) {ranked[rule]['planes']} ranks #{rule + 1} "
@@ -211,10 +210,6 @@ def _simulate(a, families, rank_by) -> int:
         write_json_atomic(a.json, doc)
         print(f"ranking: {a.json}")
     return 0
-
-
-def r_is_rule(row) -> bool:
-    return str(row["rule"]) in ("True", "true", "1")
 
 
 def cmd_train_planes(a) -> int:

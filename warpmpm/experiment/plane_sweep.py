@@ -55,15 +55,9 @@ def placement_labels(prep, model, family: str, n_positions: int) -> list[str]:
     pancreas (up to ``(n_positions + 1) ** 2`` placements)."""
     if family not in FAMILIES:
         raise InputError(f"plane family {family!r}: use one of {', '.join(FAMILIES)}")
-    pan = model.subset(("pancreas",))
-    best, spread = {}, {}
-    for o in ("sagittal", "coronal"):
-        counts = pan.slice_counts(o)[:, 0]
-        on = np.nonzero(counts > 0)[0]
-        best[o] = int(np.argmax(counts))
-        # evenly across the slices that hold pancreas particles (with a sampling step some slices hold none)
-        picks = np.unique(on[np.round(np.linspace(0, len(on) - 1, max(n_positions, 1))).astype(int)])
-        spread[o] = [best[o]] + [int(k) for k in picks if k != best[o]]
+    from ..plane_placement import pancreas_slices
+
+    spread = {o: pancreas_slices(model, o, n_positions=n_positions) for o in ("sagittal", "coronal")}
     sag = [prep.label("sagittal", k) for k in spread["sagittal"]]
     if family == "sagittal":
         return sag

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..images import ORGANS
-from ..plane_placement import FEATURES, PlacementTable, placement_regret, train_placement_model
+from ..plane_placement import FEATURES, PlacementTable, is_rule, placement_regret, train_placement_model
 from ..selection import r2_score
 
 __all__ = ["OBJECTIVES", "read_sweep_rows", "evaluate", "evaluate_simulated", "train_planes"]
@@ -111,7 +111,7 @@ def evaluate_simulated(rows: list[dict], method: str = "copy") -> dict:
         for objective, organs in OBJECTIVES.items():
             ea = np.array([np.mean([float(by[a][p][f"{method}_{o}_mm"]) for o in organs]) for p in common])
             eb = np.array([np.mean([float(by[b][p][f"{method}_{o}_mm"]) for o in organs]) for p in common])
-            rule = [i for i, p in enumerate(common) if str(by[b][p]["rule"]) in ("True", "true", "1")]
+            rule = [i for i, p in enumerate(common) if is_rule(by[b][p])]
             regrets.setdefault((objective, a[2]), []).append(
                 {"simulated": float(eb[np.argmin(ea)] - eb.min()), "rule": float(eb[rule[0]] - eb.min()) if rule else float("nan"),
                  "random": float(eb.mean() - eb.min()), "spread": float(eb.max() - eb.min())})
