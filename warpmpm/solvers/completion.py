@@ -35,7 +35,9 @@ equilibrium (the system is linear; there is nothing else to settle).
 
 Returned positions: with ``observed_first`` (the default) every particle of a seen organ keeps its observed motion
 along the directions its planes measure (the particles on a plane their own, the others the copy of their organ's)
-and takes the equilibrium's along the rest; every other particle takes the equilibrium's. Without it, every particle
+and, with ``through_plane="copy"`` (the default), the copy's along the rest (a single plane: no through-plane motion
+of a seen organ beyond the copy's); with ``through_plane="equilibrium"`` the equilibrium's there. Every other particle
+(the organs on no plane, the tissue) takes the equilibrium's. Without it, every particle
 takes the equilibrium's motion (how far the elasticity moves a seen organ from its observation is then part of the
 score).
 
@@ -133,8 +135,14 @@ def _project(P: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def _keep_observed(disp: np.ndarray, idx: np.ndarray, axes: np.ndarray, d_on: np.ndarray, off: np.ndarray, offP: np.ndarray,
-                   d_off: np.ndarray) -> None:
-    """``observed_first``: along the observed directions the seen particles take their observation (in place)."""
+                   d_off: np.ndarray, d_copy_on: np.ndarray | None = None) -> None:
+    """``observed_first``: along the observed directions the seen particles take their observation (in place); with
+    ``d_copy_on`` (``through_plane="copy"``) they take the copy's motion along every other direction too (the
+    particles on a plane ``d_copy_on``, the seen organs' others ``d_off``)."""
+    if d_copy_on is not None:
+        disp[idx] = d_copy_on + _project(axes, d_on - d_copy_on)
+        disp[off] = d_off
+        return
     disp[idx] += _project(axes, d_on - disp[idx])
     disp[off] += _project(offP, d_off - disp[off])
 
@@ -169,7 +177,8 @@ def complete(cm: CompletionModel, idx: np.ndarray, targets_mm: np.ndarray, axes:
     r_on = _project(axes, disp[idx] - d_on)
     r_off = _project(offP, disp[off] - pull)
     if cm.config.observed_first:
-        _keep_observed(disp, idx, axes, d_on, off, offP, d_off)
+        _keep_observed(disp, idx, axes, d_on, off, offP, d_off,
+                       copy_mm[idx] - x[idx] if cm.config.through_plane == "copy" else None)
     rms = lambda r: float(np.sqrt(np.mean(np.sum(r * r, 1)))) if len(r) else float("nan")  # noqa: E731
     return CompletionResult(x + disp, info["converged"], info["iterations"], info["residual"], time.perf_counter() - t0,
                             rms(r_on), rms(r_off), {"setup_s": cm._plan["setup_s"], "unknowns": 3 * len(cm.active_nodes)})
@@ -180,8 +189,8 @@ class ReducedCompletion:
 
     The equilibrium is linear in the observation. Each seen organ's observed displacements (its on-plane particles'
     and the copy on its off-plane ones, along their projectors) are fitted, frame by frame, by an affine motion of the
-    organ (12 parameters, weighted by the springs' stiffness); the equilibrium's response to each of those 12 x organs
-    motions is solved once here (:meth:`CompletionModel.solve`, one CG solve each), so a frame is a small least-squares
+    organ (12 parameters, weighted by the springs' stiffness; ``reduced_modes="translation"``: its translation, 3);
+    the equilibrium's response to each of those motions is solved once here (to ``response_rtol``) (:meth:`CompletionModel.solve`, one CG solve each), so a frame is a small least-squares
     fit and a matrix product. ``observed_first`` still returns the exact observation along the observed directions;
     the affine fit only shapes what the planes do not show (a local push seen on a plane reaches the unseen parts only
     through its organ's affine part)."""
@@ -205,18 +214,20 @@ class ReducedCompletion:
             c0 = pts.mean(0)
             L = max(float(np.ptp(pts, 0).max()) / 2, 1.0)
             phi = self._phi((pts - c0) / L)  # (n, 3, 12)
+            if cm.config.reduced_modes == "translation":
+                phi = np.ascontiguousarray(phi[:, :, :3])
             Pg = np.concatenate([self.axes[sel], np.broadcast_to(P, (len(rest), 3, 3))])
             kg = np.concatenate([k_on[sel], k_off[start:start + len(rest)]])
             PPhi = np.einsum("nij,njm->nim", Pg, phi)
             G = np.einsum("n,nim,nil->ml", kg, PPhi, PPhi)
             self.fits.append((sel, slice(start, start + len(rest)), c0, L, phi, PPhi, kg, np.linalg.pinv(G, rcond=1e-9)))
-            for m in range(12):  # the response to this organ moving by mode m alone
+            for m in range(phi.shape[-1]):  # the response to this organ moving by mode m alone
                 d_on = np.zeros((len(self.idx), 3))
                 d_off = np.zeros((len(self.off), 3))
                 d_on[sel] = phi[: len(sel), :, m]
                 d_off[start:start + len(rest)] = phi[len(sel):, :, m]
                 cm._u = None
-                u, info = cm.solve(d_on, d_off)
+                u, info = cm.solve(d_on, d_off, rtol=cm.config.response_rtol)
                 if not info["converged"]:
                     raise SimulationError(f"ReducedCompletion: the response to mode {m} did not converge (residual {info['residual']:.1e})")
                 responses.append(cm.particle_displacements(u))
@@ -244,5 +255,7 @@ class ReducedCompletion:
             coef.append(Ginv @ np.einsum("n,nim,ni->m", kg, PPhi, d))
         disp = self.R @ np.concatenate(coef) if coef else np.zeros_like(x)
         if self.cm.config.observed_first:
-            _keep_observed(disp, self.idx, self.axes, d_on, self.off, self.offP, d_off)
-        return CompletionResult(x + disp, True, 0, float("nan"), time.perf_counter() - t0, info={"setup_s": self.setup_s})
+            _keep_observed(disp, self.idx, self.axes, d_on, self.off, self.offP, d_off,
+                           copy_mm[self.idx] - x[self.idx] if self.cm.config.through_plane == "copy" else None)
+        return CompletionResult(x + disp, True, 0, float("nan"), time.perf_counter() - t0,
+                                info={"setup_s": self.setup_s, "responses": int(self.R.shape[-1])})

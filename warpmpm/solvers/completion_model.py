@@ -63,10 +63,24 @@ class CompletionConfig:
     stomach 0.47 -> 4.52 mm, MR left kidney 2.34 -> 2.56 mm); bone is always held."""
     observed_first: bool = True
     """Return the observed motion for the seen organs' particles along their planes' directions (module docstring)."""
+    through_plane: Literal["copy", "equilibrium"] = "copy"
+    """With ``observed_first``, what a seen organ's particles take along the directions none of its planes measures:
+    ``copy`` (default), the copy's motion there (with one plane: none); ``equilibrium``, the solve's. Measured on the
+    finite-element truths (``benchmarks/studies/completion_ceiling.py``) the equilibrium's through-plane motion is worse
+    than the copy's in 6 of 7 cases, even given the true in-plane motion of the whole organ: MR sample, sagittal,
+    pancreas left-right 0.56 mm (0.50 with the whole organ's) against 0.28; duodenum seen on the coronal plane only,
+    anterior-posterior 0.60 against 0.41 (MR), 1.39 against 0.18 (CT)."""
     rtol: float = 1e-6
     """Relative residual at which a frame's solve has converged."""
     max_iterations: int = 400
     """Conjugate-gradient iterations of one frame at most; a frame that stops short is not converged."""
+    reduced_modes: Literal["affine", "translation"] = "affine"
+    """:class:`~warpmpm.solvers.completion.ReducedCompletion` (the tracker's): the motions of each seen organ whose
+    equilibrium responses are precomputed, ``affine`` (12 an organ) or ``translation`` (3 an organ, 4x fewer solves)."""
+    response_rtol: float = 1e-3
+    """Relative residual of each precomputed response of :class:`~warpmpm.solvers.completion.ReducedCompletion` (a
+    response is a unit motion; 1e-3 against 1e-6 changed no organ's tracked error by 0.01 mm on the phantom's main job,
+    for a third of the set-up time)."""
 
     def __post_init__(self):
         if not (self.unseen_direction_stiffness >= 0 and np.isfinite(self.unseen_direction_stiffness)):
@@ -82,6 +96,12 @@ class CompletionConfig:
             raise InputError(f"CompletionConfig.max_iterations must be >= 1, got {self.max_iterations}")
         if self.off_plane_motion not in ("copy", "translation"):
             raise InputError(f"CompletionConfig.off_plane_motion must be 'copy' or 'translation', got {self.off_plane_motion!r}")
+        if self.through_plane not in ("copy", "equilibrium"):
+            raise InputError(f"CompletionConfig.through_plane must be 'copy' or 'equilibrium', got {self.through_plane!r}")
+        if self.reduced_modes not in ("affine", "translation"):
+            raise InputError(f"CompletionConfig.reduced_modes must be 'affine' or 'translation', got {self.reduced_modes!r}")
+        if not (self.response_rtol > 0 and np.isfinite(self.response_rtol)):
+            raise InputError(f"CompletionConfig.response_rtol must be > 0, got {self.response_rtol}")
         if self.materials not in ("tissue", "paper"):
             raise InputError(f"CompletionConfig.materials must be 'tissue' or 'paper', got {self.materials!r}")
 
@@ -311,9 +331,11 @@ class CompletionModel:
         self._u = None
         self._plan["setup_s"] = time.perf_counter() - t0
 
-    def solve(self, d_on_mm: np.ndarray, d_off_mm: np.ndarray, d_tissue_mm: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    def solve(self, d_on_mm: np.ndarray, d_off_mm: np.ndarray, d_tissue_mm: np.ndarray | None = None,
+              rtol: float | None = None) -> tuple[np.ndarray, dict]:
         """Node displacements (n_active, 3) mm for the observed displacements of the ``on_plane``, ``off_plane`` and
-        ``tissue`` springs of :meth:`observe`, and the solve's report (``converged``, ``iterations``, ``residual``)."""
+        ``tissue`` springs of :meth:`observe`, and the solve's report (``converged``, ``iterations``, ``residual``);
+        ``rtol``: the relative residual to reach (default the config's)."""
         plan = self._plan
         if plan is None:
             raise SimulationError("CompletionModel.solve before observe(): no plane set")
@@ -328,13 +350,14 @@ class CompletionModel:
                   inputs=[plan["x"], wp.array(plan["k"], dtype=float, device=self.device), wp.array(plan["P"], dtype=wp.mat33, device=self.device),
                           wp.array(d, dtype=wp.vec3, device=self.device), self.shape[1], self.shape[2], self._active_wp, f])
         b = f.numpy().reshape(-1)
-        u, iters, res = self._cg(b, self._u)
+        rtol = self.config.rtol if rtol is None else rtol
+        u, iters, res = self._cg(b, self._u, rtol)
         if not np.all(np.isfinite(u)):
             raise SimulationError("the completion solve produced non-finite displacements")
         self._u = u
-        return u.reshape(-1, 3), {"converged": bool(res <= self.config.rtol * 1.01), "iterations": iters, "residual": res}
+        return u.reshape(-1, 3), {"converged": bool(res <= rtol * 1.01), "iterations": iters, "residual": res}
 
-    def _cg(self, b: np.ndarray, x0: np.ndarray | None) -> tuple[np.ndarray, int, float]:
+    def _cg(self, b: np.ndarray, x0: np.ndarray | None, rtol: float) -> tuple[np.ndarray, int, float]:
         from scipy.sparse.linalg import cg
 
         plan = self._plan
@@ -346,7 +369,7 @@ class CompletionModel:
         norm = float(np.linalg.norm(b))
         if norm == 0.0:
             return np.zeros_like(b), 0, 0.0
-        u, _ = cg(plan["A"], b, x0=x0, rtol=self.config.rtol, atol=0.0, maxiter=self.config.max_iterations, M=plan["M"], callback=cb)
+        u, _ = cg(plan["A"], b, x0=x0, rtol=rtol, atol=0.0, maxiter=self.config.max_iterations, M=plan["M"], callback=cb)
         return u, count[0], float(np.linalg.norm(plan["A"] @ u - b)) / norm
 
     def particle_displacements(self, u_nodes: np.ndarray, x_cells: wp.array | None = None) -> np.ndarray:
