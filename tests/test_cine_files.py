@@ -347,7 +347,7 @@ def test_track_on_a_trackrad_case_through_the_phantom(tmp_path, tiny_case, capsy
     plane = ndimage.map_coordinates(tiny_case.image, q[:, ::-1].T, order=1).reshape(rows, cols)
     case = trackrad_case(str(tmp_path / "Z_001"), np.repeat(plane[..., None], 3, axis=2), spacing=(1.0, sp, sp), rate=4.0)
     args = ["track", "--image", str(plan / "image.nii.gz"), "--labels", str(plan / "labels.nii.gz"), "--cine", case,
-            "--out", str(tmp_path / "out"), "--device", "cpu", "--max-steps", "600"]
+            "--out", str(tmp_path / "out"), "--device", "cpu", "--max-steps", "600", "--estimator", "slice-driven"]
     assert main(args) == 2 and "--trackrad-centre" in capsys.readouterr().err
     assert main(args + ["--trackrad-centre=" + ",".join(f"{v:.3f}" for v in centre)]) == 0
     import csv

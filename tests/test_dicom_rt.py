@@ -165,7 +165,7 @@ def tracked(tmp_path_factory, planning):
         f.write("frame,beam_on_s\n0,0.25\n1,0.25\n")
     out = str(tmp_path_factory.mktemp("track") / "out")
     code = main(["track", "--image", str(plan / "series"), "--rtstruct", str(plan / "RS.dcm"), "--cine",
-                 os.path.join(series, "cine"), "--out", out, "--device", "cpu", "--max-steps", "1500", "--dicom", "--displacement",
+                 os.path.join(series, "cine"), "--out", out, "--device", "cpu", "--max-steps", "1500", "--estimator", "slice-driven", "--dicom", "--displacement",
                  "--dose", str(plan / "RD.dcm"), "--beam-on", str(plan / "beam.csv")])
     assert code == 0
     return plan, pref, out, case

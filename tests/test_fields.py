@@ -186,7 +186,7 @@ def test_a_cine_series_from_finite_element_fields_tracked_and_evaluated(tmp_path
     assert np.abs(pos["truth_mm"][0] - pos["planning_mm"]).max() == 0.0
     assert np.linalg.norm(pos["truth_mm"][2] - pos["planning_mm"], axis=1).mean() > 1.0
     assert main(["track", "--image", img, "--labels", lab, "--cine", str(cine / "cine"), "--out", str(track), "--device", "cpu",
-                 "--max-steps", "300"]) == 0
+                 "--estimator", "completion"]) == 0
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     assert main(["evaluate-track", "--track", str(track), "--truth", str(truth), "--json", str(a)]) == 0
     assert main(["evaluate-track", "--track", str(track), "--truth", str(cine / "truth"), "--json", str(b)]) == 0
@@ -195,6 +195,9 @@ def test_a_cine_series_from_finite_element_fields_tracked_and_evaluated(tmp_path
         assert ea["results"][m]["error_mm"] == pytest.approx(eb["results"][m]["error_mm"], abs=1e-6)
         assert set(ea["results"][m]["organs"]) == {"pancreas", "stomach", "duodenum", "left_kidney"}
     assert ea["results"]["initial"]["organs"]["pancreas"]["error_mm"] > 0.3
+    # --estimator completion: every organ within reach of a plane keeps the copy of the planes' motion
+    for o, s in ea["results"]["estimate"]["organs"].items():
+        assert s["error_mm"] == pytest.approx(ea["results"]["propagate"]["organs"][o]["error_mm"], abs=0.05), o
     with pytest.raises(SystemExit):
         main(["make-cine", "--truth", str(truth), "--out", str(tmp_path / "x"), "--frames"])
     assert main(["make-cine", "--truth", str(truth), "--out", str(tmp_path / "y")]) == 2  # no planning case given

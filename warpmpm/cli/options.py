@@ -305,6 +305,11 @@ def build_parser() -> argparse.ArgumentParser:
     ka = k.add_argument_group("advanced: the model, the solver and the registration (defaults measured: docs/decisions/)")
     ka.add_argument("--organs", default="psdl")
     ka.add_argument("--particle-step", type=int, default=1)
+    ka.add_argument("--estimator", default=_tracker_default("estimator"), choices=["slice-driven", "completion"],
+                   help="what decides the motion no plane shows: slice-driven (default): the seed's MPM driven at the plane's "
+                   "particles (--solver, --max-steps, --wait-settled, --no-predict set it); completion: the whole abdomen's "
+                   "equilibrium (organs, tissue, held spine) driven by the planes' observed motion, set up once before the "
+                   "first frame (40-90 s); measured in docs/results.md")
     ka.add_argument("--solver", default=_tracker_default("solver").method, choices=["auto", "explicit", "quasistatic"],
                    help="how each frame's equilibrium is found: auto (default): Newton / conjugate-gradient iterations to the "
                    "settled equilibrium, going on with explicit MPM steps when a frame has not settled after a few; explicit "

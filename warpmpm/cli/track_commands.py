@@ -153,7 +153,8 @@ def cmd_track(a) -> int:
     if os.path.isdir(out) and os.listdir(out) and not a.overwrite:
         raise InputError(f"--out {a.out} already holds files (an earlier track?); name a new folder, or add --overwrite to "
                          "replace it whole")
-    cfg = TrackerConfig(organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
+    cfg = TrackerConfig(estimator=a.estimator, preset=None if a.rtstruct else a.preset,
+                        organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
                         predict=not a.no_predict, wait_settled=a.wait_settled, registration=a.registration,
                         registration_linear_prior=a.linear_prior, reference=a.reference,
                         solver=SolverConfig(device=a.device, method=a.solver, cpu_threads=a.threads))
@@ -170,6 +171,9 @@ def cmd_track(a) -> int:
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
           f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes", file=sys.stderr)
+    if tracker.completion is not None:
+        print(f"completion: the abdomen's response to each seen organ's motion solved once in {tracker.completion_setup_s:.1f} s "
+              f"({tracker.completion.R.shape[-1]} responses, {tracker.completion.cm.summary()['unknowns']:,} unknowns)", file=sys.stderr)
     recorder = None
     if a.rrd:
         from ..experiment.io import check_output_path
