@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from warpmpm.experiment import raw_numbers as raw
-from warpmpm.experiment.fem_cases import field_run, load, peak_frame
+from warpmpm.experiment.fem_cases import field_run, load_on_disk, peak_frame
 
 
 def report(path: str, estimate_path: str | None = None, run: str = "table") -> str:
@@ -67,10 +67,10 @@ def series_run(a):
     out = []
     work = tempfile.mkdtemp(prefix="completion-series-")
     for name in a.cases.split(","):
-        case, preset, img, lab = load(name)
-        if img is None:
-            img, lab = os.path.join(work, "phantom_image.nii.gz"), os.path.join(work, "phantom_labels.nii.gz")
-            write_case_lazy(case, lab, img)
+        loaded = load_on_disk(name, os.path.join(work, name))
+        if loaded is None:
+            continue
+        case, preset, img, lab = loaded
         tr = make_truth(case, preset, TruthConfig(loads=("breathing",), frames=16, seed=0))
         n0 = peak_frame(tr)
         path = os.path.join(work, f"{name}_{n0}.nii.gz")
@@ -117,12 +117,6 @@ def series_run(a):
             raw.save(__file__, out, run=a.raw, quiet=True)
 
 
-def write_case_lazy(case, lab, img):
-    from warpmpm.images import write_case
-
-    write_case(case, lab, img)
-
-
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", default="mr,ct,phantom")
@@ -142,21 +136,16 @@ def main():
         return
     from warpmpm.experiment.organs import baseline_positions, organ_scores, true_distances
     from warpmpm.fields import write_field
-    from warpmpm.images import write_case
     from warpmpm.solvers.completion import CompletionConfig, CompletionModel, complete
     from warpmpm.truth_fem import TruthConfig, make_truth
 
     rows = []
     work = tempfile.mkdtemp(prefix="completion-")
     for name in a.cases.split(","):
-        try:
-            case, preset, img, lab = load(name)
-        except SystemExit as e:
-            print(e)
+        loaded = load_on_disk(name, os.path.join(work, name))
+        if loaded is None:
             continue
-        if img is None:
-            img, lab = os.path.join(work, "phantom_image.nii.gz"), os.path.join(work, "phantom_labels.nii.gz")
-            write_case(case, lab, img)
+        case, preset, img, lab = loaded
         for loads in a.loads.split(","):
             series = make_truth(case, preset, TruthConfig(loads=tuple(loads.split("+")), frames=16, seed=0))
             n = peak_frame(series)

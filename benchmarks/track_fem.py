@@ -21,7 +21,7 @@ import time
 
 
 from warpmpm.experiment import raw_numbers as raw
-from warpmpm.experiment.fem_cases import load
+from warpmpm.experiment.fem_cases import load_on_disk
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 ORGANS = ("pancreas", "stomach", "duodenum", "left_kidney")
@@ -58,24 +58,16 @@ def main(argv=None):
         return
     from warpmpm.cine import read_cine
     from warpmpm.experiment.cine_series import evaluate_track
-    from warpmpm.images import load_case, write_case
     from warpmpm.cli import main as warpmpm
     from warpmpm.tracker import Tracker, TrackerConfig
 
     rows = []
     for name in a.cases.split(","):
-        try:
-            case, preset, img, lab = load(name)
-        except SystemExit as e:
-            print(e)
-            continue
         base = os.path.join(a.work, name)
-        os.makedirs(base, exist_ok=True)
-        if img is None:
-            img, lab = os.path.join(base, "image.nii.gz"), os.path.join(base, "labels.nii.gz")
-            if not os.path.exists(lab):
-                write_case(case, lab, img)
-            case = load_case(lab, img, preset)
+        loaded = load_on_disk(name, base)
+        if loaded is None:
+            continue
+        case, preset, img, lab = loaded
         plan = ["--image", img, "--labels", lab, "--preset", preset]
         truth = os.path.join(base, "truth")
         if not os.path.isdir(truth):

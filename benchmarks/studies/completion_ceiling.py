@@ -28,7 +28,7 @@ import tempfile
 import numpy as np
 
 from warpmpm.experiment import raw_numbers as raw
-from warpmpm.experiment.fem_cases import field_run, load, peak_frame
+from warpmpm.experiment.fem_cases import field_run, load_on_disk, peak_frame
 
 
 def main():
@@ -40,20 +40,15 @@ def main():
     a = p.parse_args()
     from warpmpm.experiment.organs import baseline_positions, organ_scores, organ_translations
     from warpmpm.fields import write_field
-    from warpmpm.images import write_case
     from warpmpm.solvers.completion import CompletionConfig, CompletionModel, complete, seen_parts
     from warpmpm.truth_fem import TruthConfig, make_truth
 
     rows, work = [], tempfile.mkdtemp(prefix="completion-ceiling-")
     for name in a.cases.split(","):
-        try:
-            case, preset, img, lab = load(name)
-        except SystemExit as e:
-            print(e)
+        loaded = load_on_disk(name, os.path.join(work, name))
+        if loaded is None:
             continue
-        if img is None:
-            img, lab = os.path.join(work, "phantom_image.nii.gz"), os.path.join(work, "phantom_labels.nii.gz")
-            write_case(case, lab, img)
+        case, preset, img, lab = loaded
         series = make_truth(case, preset, TruthConfig(loads=tuple(a.load.split("+")), frames=16, seed=0))
         n = peak_frame(series)
         path = os.path.join(work, f"{name}_{n}.nii.gz")

@@ -12,7 +12,7 @@ import os
 
 import numpy as np
 
-__all__ = ["CASES", "PLANES", "sample_data_dir", "load", "peak_frame", "slices_through_pancreas", "field_run"]
+__all__ = ["CASES", "PLANES", "sample_data_dir", "load", "load_on_disk", "peak_frame", "slices_through_pancreas", "field_run"]
 
 #: case name -> (folder of the sample data, label preset)
 CASES = {"mr": ("totalseg_mr", "totalseg_mr"), "ct": ("totalseg_ct", "totalseg_ct")}
@@ -46,6 +46,26 @@ def load(name: str):
     if not os.path.exists(lab):
         raise SystemExit(f"skipped {name}: the sample data is not at {data} (set WARPMPM_SAMPLE_DATA)")
     return load_case(lab, img, preset), preset, img, lab
+
+
+def load_on_disk(name: str, folder: str):
+    """:func:`load`, with the phantom written to ``folder`` (``image.nii.gz``, ``labels.nii.gz``; kept if there) so every
+    case has files the commands can read and is read back from them; None, with the reason printed, when a sample is
+    absent (a benchmark skips it visibly)."""
+    from ..images import load_case, write_case
+
+    try:
+        case, preset, img, lab = load(name)
+    except SystemExit as e:
+        print(e)
+        return None
+    if img is None:
+        os.makedirs(folder, exist_ok=True)
+        img, lab = os.path.join(folder, "image.nii.gz"), os.path.join(folder, "labels.nii.gz")
+        if not os.path.exists(lab):
+            write_case(case, lab, img)
+        case = load_case(lab, img, preset)
+    return case, preset, img, lab
 
 
 def peak_frame(series) -> int:
