@@ -173,28 +173,26 @@ class Tracker:
         self.model: ParticleModel = build_model(case, tuple(wanted), sampling_step=cfg.particle_step)
         m = self.model
         self.label_values = {o: case.label_map[o] for o in m.organs}
-        candidates = []
-        seen = set()
+        candidates: dict[int, tuple[CineFrame, np.ndarray]] = {}  # per plane: its first frame and its candidates
         for f in frames:
-            if f.plane in seen:
+            if f.plane in candidates:
                 continue
-            seen.add(f.plane)
             dist = f.distance_mm(m.positions_mm)
             if not np.any(np.abs(dist) <= f.thickness_mm / 2):
                 raise InputError(_off_scan_message(f, case.geometry, dist, m.letters))
-            candidates.append(np.nonzero(np.abs(f.distance_mm(m.positions_mm)) <= f.thickness_mm / 2 + cfg.reach_mm)[0])
+            candidates[f.plane] = (f, np.nonzero(np.abs(dist) <= f.thickness_mm / 2 + cfg.reach_mm)[0])
         if all(abs(f.normal[2]) > np.cos(np.radians(10.0)) for f in frames):
             warnings.warn("every cine frame is transversal: no plane sees superior-inferior motion, so the estimate's "
                           "superior-inferior motion is a guess; image a sagittal or coronal plane too", InputWarning, stacklevel=2)
         #: every particle that may lie on a plane during the series (each frame drives those on it now)
-        self.driven = np.unique(np.concatenate(candidates))
+        self.driven = np.unique(np.concatenate([c for _, c in candidates.values()]))
         self.estimator, self.completion, self.completion_setup_s = None, None, 0.0
         if cfg.estimator == "slice-driven":
             reach = [m.positions_mm + s * cfg.margin_mm * np.eye(3)[k] for k in range(3) for s in (-0.5, 0.5)]
             self.estimator = SliceDrivenEstimator(m, driven=self.driven, solver_config=cfg.solver, extra_points_mm=np.vstack(reach),
                                                   convergence=ConvergenceConfig(max_steps=cfg.max_steps, wait_settled=cfg.wait_settled))
         else:
-            self.completion = self._set_up_completion(frames)
+            self.completion = self._set_up_completion(list(candidates.values()))
         self._positions = m.positions_mm.copy()  # the completion's current estimate
         self.planning_image = case.intensity_image()  # rendered frame after frame: built once
         self.last_frame: dict[int, CineFrame] = {}
@@ -208,21 +206,15 @@ class Tracker:
         self.plane_propagated: dict[int, np.ndarray] = {}
         self.plane_labels: dict[int, np.ndarray] = {}
 
-    def _set_up_completion(self, frames: list[CineFrame]) -> ReducedCompletion:
-        """The completion of the series' plane set (every plane, the particles that may lie on it during the series and
-        the directions it measures), its response to each seen organ's motion solved once (:class:`ReducedCompletion`)."""
+    def _set_up_completion(self, planes: list[tuple[CineFrame, np.ndarray]]) -> ReducedCompletion:
+        """The completion of the series' plane set (each plane's first frame with its candidates: the particles that may
+        lie on it during the series; the directions it measures), its response to each seen organ's motion solved once
+        (:class:`ReducedCompletion`). The candidates, as the frames' targets are chosen: an organ the registration can
+        measure on a frame is a seen organ, even where only its edge lies on the plane at planning."""
         t0 = time.perf_counter()
         m, cfg = self.model, self.config
-        first: dict[int, CineFrame] = {}
-        for f in frames:
-            first.setdefault(f.plane, f)
-        idx, axes = [], []
-        for f in first.values():
-            # every particle that may come onto the plane during the series (as the frames' targets are chosen): an organ
-            # the registration can measure on a frame is a seen organ, even where only its edge lies on the plane at planning
-            on = np.nonzero(np.abs(f.distance_mm(m.positions_mm)) <= f.thickness_mm / 2 + cfg.reach_mm)[0]
-            idx.append(on)
-            axes.append(np.broadcast_to(f.projector, (len(on), 3, 3)))
+        idx = [on for _, on in planes]
+        axes = [np.broadcast_to(f.projector, (len(on), 3, 3)) for f, on in planes]
         cm = CompletionModel(self.case, cfg.preset, m, cfg.completion, device=cfg.solver.device)
         reduced = ReducedCompletion(cm, np.concatenate(idx), np.concatenate(axes))
         self.completion_setup_s = time.perf_counter() - t0
@@ -298,16 +290,12 @@ class Tracker:
             d = out - frame.in_plane(now)
             return now + d[:, :1] * frame.e_u + d[:, 1:] * frame.e_v
 
-        targets = x[self.driven].copy()
-        axes = np.zeros((len(self.driven), 3, 3))
         on = self.on_plane(frame, x)
         if not on.any():
             raise InputError(f"cine frame {frame.path}: no particle of the current estimate lies on its plane "
                              f"(the organs have moved out of it)")
         # the registration moves the reference's content: the estimate now, or the plane when it was last imaged
         seen = observed(x, x if by_estimate else self.plane_positions.get(frame.plane, m.positions_mm))
-        targets[on] = seen[self.driven[on]]
-        axes[on] = frame.projector
         if self.completion is not None:
             # the baseline on its own: the frame's motion applied to the copy's positions (the estimate and the copy agree
             # on the seen organs along the directions the planes measure, not elsewhere)
@@ -326,6 +314,10 @@ class Tracker:
                 self.propagated = seen.copy()
             else:
                 self.propagated = observed(self.propagated, self.plane_propagated.get(frame.plane, m.positions_mm))
+            targets = x[self.driven].copy()  # the particles on the plane now pulled where the frame's motion puts them
+            axes = np.zeros((len(self.driven), 3, 3))
+            targets[on] = seen[self.driven[on]]
+            axes[on] = frame.projector
             if self.config.predict:
                 self.estimator.move_to(seen)
             res = self.estimator.estimate(targets, axes=axes)
