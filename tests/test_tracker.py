@@ -349,9 +349,11 @@ def test_track_never_mixes_two_tracks_in_one_folder(series, tmp_path, capsys):
     (old / "frame_0099.nii.gz").write_text("an earlier track's map")
     assert main([*args, "--out", str(old)]) == 2 and "--overwrite" in capsys.readouterr().err
     assert [p.name for p in old.iterdir()] == ["frame_0099.nii.gz"]
+    assert main([*args, "--out", str(old), "--overwrite"]) == 2 and "did not write" in capsys.readouterr().err  # not ours
+    (old / "warpmpm-output.json").write_text('{"kind": "track"}')  # an earlier track of this tool's
     assert main([*args, "--out", str(old), "--overwrite"]) == 0
-    assert sorted(p.name for p in old.iterdir()) == ["labels", "particles.npz", "track.csv"]
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".track-")]  # no work folder left behind
+    assert sorted(p.name for p in old.iterdir()) == ["labels", "particles.npz", "track.csv", "warpmpm-output.json"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no work folder or lock left behind
 
 
 def test_a_corrupt_frame_is_flagged_and_not_driven(series, tmp_path):
@@ -437,7 +439,7 @@ def test_a_track_killed_midway_leaves_no_track_and_the_rerun_is_whole(tmp_path):
             "--device", "cpu", "--max-steps", "1500", "--estimator", "slice-driven"]
 
     def first_frame_written():
-        return any(p.name.startswith(".track-") and (p / "labels" / "frame_0000.nii.gz").exists() for p in work_dir.iterdir())
+        return any(p.name.startswith(".warpmpm-work-track-") and (p / "labels" / "frame_0000.nii.gz").exists() for p in work_dir.iterdir())
 
     for sig in (signal.SIGKILL, signal.SIGINT):
         # a job started in the background by a non-interactive shell (as CI may run the suite) inherits SIGINT ignored:
@@ -455,13 +457,13 @@ def test_a_track_killed_midway_leaves_no_track_and_the_rerun_is_whole(tmp_path):
         if sig == signal.SIGINT:
             assert proc.returncode == 130 and "interrupted: nothing was written" in err, (proc.returncode, err)
             time.sleep(0.5)
-            left = [p.name for p in work_dir.iterdir() if p.name.startswith(".track-")]
+            left = [p.name for p in work_dir.iterdir() if p.name.startswith(".warpmpm-work-track-")]
             assert not left, (left, err)
         else:
-            assert any(p.name.startswith(".track-") for p in work_dir.iterdir())
+            assert any(p.name.startswith(".warpmpm-work-track-") for p in work_dir.iterdir())
             done = subprocess.run(args, capture_output=True, text=True, timeout=300)
-            assert done.returncode == 0 and "the unfinished work of a track that was killed" in done.stderr
-            assert (out / "track.csv").exists() and not any(p.name.startswith(".track-") for p in work_dir.iterdir())
+            assert done.returncode == 0 and "the unfinished work of a run that was killed" in done.stderr
+            assert (out / "track.csv").exists() and not any(p.name.startswith(".warpmpm-work-track-") for p in work_dir.iterdir())
             shutil.rmtree(out)
 
 

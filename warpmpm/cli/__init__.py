@@ -15,8 +15,9 @@ make-cine | make-truth | evaluate-track | cine-info``.
     warpmpm evaluate-track --track runs/track --truth runs/cine/truth
 
 Exit codes: 0 success; 1 some sweep tasks failed (their rows are missing; re-run to retry); 2 bad
-input (one ``error:`` line naming it, nothing written); 3 the simulation failed; 130 interrupted
-(Ctrl-C: one line, no partial output); 141 standard output closed by its reader (``| head``: no traceback,
+input, or a file the system would not read or write (one ``error:`` line naming it, nothing written); 3 the
+simulation failed; 4 an error warpmpm did not foresee (one ``internal error:`` line, nothing written: a bug, please
+report it; ``--verbose`` prints where it happened); 130 interrupted (Ctrl-C: one line saying what was kept); 141 standard output closed by its reader (``| head``: no traceback,
 and what was still to be written may be missing, as with a shell's SIGPIPE).
 """
 
@@ -26,13 +27,13 @@ import os
 import sys
 
 from ..errors import InputError, SimulationError
-from .exit_codes import EXIT_INPUT, EXIT_INTERRUPTED, EXIT_PIPE_CLOSED, EXIT_SIMULATION, EXIT_TASKS_FAILED
+from .exit_codes import EXIT_INPUT, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_PIPE_CLOSED, EXIT_SIMULATION, EXIT_TASKS_FAILED
 from .experiment_commands import cmd_multi, cmd_run, cmd_sweep, cmd_sweep_planes, cmd_train, cmd_view, config_from_args
 from .options import build_parser
 from .plane_commands import cmd_plan_planes, cmd_train_planes
 from .track_commands import cmd_cine_info, cmd_evaluate_track, cmd_make_cine, cmd_make_truth, cmd_track
 
-__all__ = ["build_parser", "config_from_args", "cmd_run", "cmd_sweep", "cmd_sweep_planes", "cmd_plan_planes", "cmd_train_planes", "cmd_multi", "cmd_train", "cmd_view",
+__all__ = ["build_parser", "config_from_args", "cmd_run", "cmd_sweep", "cmd_sweep_planes", "cmd_plan_planes", "cmd_train_planes", "cmd_multi", "cmd_train", "cmd_view", "EXIT_INTERNAL",
            "cmd_track", "cmd_make_cine", "cmd_make_truth", "cmd_evaluate_track", "cmd_cine_info", "COMMANDS", "main", "run_main",
            "EXIT_TASKS_FAILED", "EXIT_INPUT", "EXIT_SIMULATION", "EXIT_INTERRUPTED", "EXIT_PIPE_CLOSED"]
 
@@ -85,6 +86,19 @@ def main(argv=None) -> int:
     except BrokenPipeError:  # the reader of stdout went away (`warpmpm ... | head`): stop without a traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_PIPE_CLOSED
+    except OSError as exc:  # the system refused a file (permissions, a full disk, a special file): name it
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: {where}{exc.strerror or exc}; check that the file exists, is a regular file and that you may read it "
+              "(or write its folder)", file=sys.stderr)
+        return EXIT_INPUT
+    except Exception as exc:  # not foreseen: one line, never a traceback (--verbose prints it)
+        if getattr(a, "verbose", False):
+            import traceback
+
+            traceback.print_exc()
+        print(f"internal error: {type(exc).__name__}: {exc}. This is a bug in warpmpm, not in your input as far as it "
+              "checked: please report it with the command (--verbose prints where it happened)", file=sys.stderr)
+        return EXIT_INTERNAL
 
 
 def run_main(argv=None) -> int:

@@ -73,29 +73,6 @@ def _beam_on(path: str, n_frames: int) -> list[float]:
     return weights
 
 
-def _remove_dead_tracks(parent: str) -> None:
-    """Remove the working folders (``.track-*``) that killed tracks left in ``parent``: those whose process is gone."""
-    import shutil
-
-    for name in os.listdir(parent):
-        path = os.path.join(parent, name)
-        if not (name.startswith(".track-") and os.path.isdir(path)):
-            continue
-        try:
-            pid = int(open(os.path.join(path, "pid")).read().strip())
-        except (OSError, ValueError):
-            continue  # not ours, or still being created: left alone
-        try:
-            os.kill(pid, 0)
-            continue  # still running
-        except ProcessLookupError:
-            pass
-        except PermissionError:
-            continue
-        shutil.rmtree(path, ignore_errors=True)
-        print(f"removed {path}: the unfinished work of a track that was killed", file=sys.stderr)
-
-
 def _dicom_writer(case, a, work, frames=()):
     """The planning series the DICOM outputs refer to: the user's (a DICOM --image), else the planning image written as one."""
     from ..dicom_rt import FrameDicomWriter, read_series_reference, write_series
@@ -115,10 +92,13 @@ def _dicom_writer(case, a, work, frames=()):
     return FrameDicomWriter(ref, names, cine_for)
 
 
+def _arguments(a) -> dict:
+    """The command's arguments, as recorded in the output folder's record file."""
+    return {k: v for k, v in vars(a).items() if isinstance(v, (str, int, float, bool, type(None), list))}
+
+
 def cmd_track(a) -> int:
     from ..cine import read_cine
-    from ..solvers import SolverConfig
-    from ..tracker import Tracker, TrackerConfig
 
     bad = sorted(set(a.organs) - set("psdl"))
     if bad or not a.organs:
@@ -144,15 +124,22 @@ def cmd_track(a) -> int:
         if a.trackrad_centre:
             raise InputError(f"--trackrad-centre places a TrackRAD case; {a.cine} is not one (its frames carry their own position)")
         frames = read_cine(a.cine)
-    out = os.path.abspath(a.out)
-    parent = os.path.dirname(out)
-    if not os.path.isdir(parent):
-        raise InputError(f"output folder {parent} for --out does not exist")
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise InputError(f"--out {a.out} is a file; name a folder")
-    if os.path.isdir(out) and os.listdir(out) and not a.overwrite:
-        raise InputError(f"--out {a.out} already holds files (an earlier track?); name a new folder, or add --overwrite to "
-                         "replace it whole")
+    from ..output_folder import OutputFolder
+
+    # checked and locked before any work: never an input, never a folder this tool did not write, one writer at a time
+    folder = OutputFolder(a.out, kind="track", overwrite=a.overwrite, record={"arguments": _arguments(a)},
+                          inputs=[("--image", a.image), ("--labels", a.labels), ("--rtstruct", a.rtstruct), ("--cine", a.cine),
+                                  ("--dose", a.dose), ("--beam-on", a.beam_on)])
+    try:
+        return _track_into(a, case, frames, folder)
+    finally:
+        folder.release()
+
+
+def _track_into(a, case, frames, folder) -> int:
+    from ..solvers import SolverConfig
+    from ..tracker import Tracker, TrackerConfig
+
     cfg = TrackerConfig(estimator=a.estimator, preset=None if a.rtstruct else a.preset,
                         organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
                         predict=not a.no_predict, wait_settled=a.wait_settled, registration=a.registration,
@@ -182,14 +169,7 @@ def cmd_track(a) -> int:
         recorder = TrackRecorder(check_output_path(a.rrd, "--rrd"), tracker.model)
     # written into a folder beside --out and moved into place at the end: an interrupted or failed track leaves no
     # half-written --out, and --overwrite replaces the old track whole (two tracks are never mixed)
-    import shutil
-    import tempfile
-
-    _remove_dead_tracks(parent)
-    work = tempfile.mkdtemp(prefix=".track-", dir=parent)
-    with open(os.path.join(work, "pid"), "w") as fh:  # whose it is: a later track removes it if this one was killed
-        fh.write(str(os.getpid()))
-    try:
+    with folder as work:
         dicom = _dicom_writer(case, a, work, frames) if a.dicom else None
         rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder, dicom=dicom, dose=dose,
                            dose_weights=weights)
@@ -202,12 +182,6 @@ def cmd_track(a) -> int:
             write_rtdose(os.path.join(work, "dicom", "RD_accumulated.dcm"), dicom.ref,
                          sitk.GetArrayFromImage(dose.accumulated_image()), plan_uid=plan,
                          description="warpmpm accumulated dose (organs only)")
-        os.remove(os.path.join(work, "pid"))
-        if os.path.isdir(out):
-            shutil.rmtree(out)
-        os.replace(work, out)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
     import numpy as np
 
     lat = np.array([r["latency_s"] for r in rows[1:]] or [rows[0]["latency_s"]])
@@ -238,26 +212,20 @@ def cmd_make_cine(a) -> int:
     check_cine_parameters(planes, len(fields) if fields else a.frames, fps, 4.0, a.thickness_mm, a.pixel_mm, a.format)  # before anything is written
     if a.seed < 0:
         raise InputError(f"--seed must be a whole number >= 0, got {a.seed}")
-    if os.path.exists(a.out) and not os.path.isdir(a.out):
-        raise InputError(f"--out {a.out} is a file; name a new folder")
-    if os.path.isdir(a.out) and os.listdir(a.out):
-        raise InputError(f"--out {a.out} already holds files; name a new or empty folder (two series are never mixed)")
     if a.image is not None and a.labels is None:
         raise InputError("--image needs --labels (without both, the built-in phantom is used)")
     import math
-    import shutil
-    import tempfile
 
     if not (math.isfinite(a.phantom_resolution) and 0.25 <= a.phantom_resolution <= 16):
         raise InputError(f"--phantom-resolution must be a finite number in 0.25..16 (mm), got {a.phantom_resolution}")
     if not 1 <= a.particle_step <= 16:
         raise InputError(f"--particle-step must be a whole number in 1..16, got {a.particle_step}")
-    out = os.path.abspath(a.out)
-    if not os.path.isdir(os.path.dirname(out)):
-        raise InputError(f"the folder {os.path.dirname(out)} for --out does not exist")
-    # written beside --out and moved into place at the end: a failed or interrupted series leaves nothing behind
-    work = tempfile.mkdtemp(prefix=".make-cine-", dir=os.path.dirname(out))
-    try:
+    from ..output_folder import OutputFolder
+
+    # never an input, never a folder that holds anything (two series are never mixed), one writer at a time; written
+    # beside --out and moved into place at the end: a failed or interrupted series leaves nothing behind
+    with OutputFolder(a.out, kind="cine", record={"arguments": _arguments(a)},
+                      inputs=[("--image", a.image), ("--labels", a.labels), ("--truth", a.truth)]) as work:
         if a.labels is None:  # the phantom: its planning image and labels go beside the series, for `warpmpm track`
             from ..images import write_case
 
@@ -270,26 +238,31 @@ def cmd_make_cine(a) -> int:
         make_cine(case, work, planes=planes, frames=a.frames, fps=fps, thickness_mm=a.thickness_mm, pixel_mm=a.pixel_mm,
                   seed=a.seed, particle_step=a.particle_step, fmt=a.format, truth_fields=fields,
                   progress=lambda t: print(t, flush=True))
-        if os.path.isdir(out):
-            os.rmdir(out)  # empty (checked above)
-        os.replace(work, out)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
     print(f"wrote {a.out}/cine and {a.out}/truth")
     return 0
 
 
 def cmd_make_truth(a) -> int:
-    from ..phantom import make_phantom
-    from ..truth_fem import TruthConfig, make_truth, write_truth
+    from ..output_folder import OutputFolder
+    from ..truth_fem import TruthConfig
 
     cfg = TruthConfig(loads=tuple(x.strip() for x in a.load.split(",") if x.strip()), frames=a.frames, fps=a.fps, seed=a.seed,
                       cell_mm=a.cell_mm, margin_mm=a.margin_mm, interface_mm=a.interface_mm)
-    out = os.path.abspath(a.out)
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise InputError(f"--out {a.out} is a file; name a new folder")
-    if os.path.isdir(out) and os.listdir(out):
-        raise InputError(f"--out {a.out} already holds files; name a new or empty folder (a truth is never mixed with another)")
+    # checked and locked before the solve: never an input, never a folder that holds anything (a truth is never mixed
+    # with another), one writer at a time
+    folder = OutputFolder(a.out, kind="truth", record={"arguments": _arguments(a)},
+                          inputs=[("--image", a.image), ("--labels", a.labels)])
+    try:
+        return _make_truth_into(a, cfg, folder)
+    finally:
+        folder.release()
+
+
+def _make_truth_into(a, cfg, folder) -> int:
+    from ..phantom import make_phantom
+    from ..truth_fem import make_truth
+    from ..truth_fem.series import write_truth_files
+
     if a.labels is None:
         if a.image is not None:
             raise InputError("--image needs --labels (without both, the built-in phantom is used)")
@@ -305,7 +278,8 @@ def cmd_make_truth(a) -> int:
     else:
         case, preset = _planning_case(a.image, a.labels, a.preset), a.preset
     series = make_truth(case, preset, cfg, progress=lambda t: print(t, flush=True))
-    write_truth(series, a.out)
+    with folder as work:
+        write_truth_files(series, work)
     m = series.record["mesh"]
     print(f"wrote {a.out}/fields ({cfg.frames} frames) and {a.out}/truth.json: {m['n_elements']:,} elements of "
           f"{max(m['cell_mm']):.1f} mm, {m['n_unknowns']:,} unknowns, largest residual "

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 
@@ -21,7 +19,7 @@ from .elements import CORNERS, ElasticSolver, assemble, reference_matrices
 from .mesh import build_abdomen_mesh
 from .loads import anatomical_axes, cell_eigenstrain, diaphragm_displacement, draw_loads, load_state
 
-__all__ = ["TruthSeries", "AbdomenModel", "make_truth", "write_truth"]
+__all__ = ["TruthSeries", "AbdomenModel", "make_truth", "write_truth", "write_truth_files"]
 
 
 @dataclass
@@ -210,29 +208,23 @@ def make_truth(case: Case, preset: str | None, cfg: TruthConfig, progress=None) 
     return TruthSeries(case.geometry, fields, record)
 
 
-def write_truth(series: TruthSeries, out_dir: str) -> None:
-    """``out_dir/fields/frame_NNNN.nii.gz`` (one per frame, :func:`warpmpm.fields.write_field`) and
-    ``out_dir/truth.json``; written in a temporary folder beside it and moved into place, so a failure leaves
-    nothing half-written. An existing ``out_dir`` that is not empty is refused."""
+def write_truth_files(series: TruthSeries, folder: str) -> None:
+    """``folder/fields/frame_NNNN.nii.gz`` (one per frame, :func:`warpmpm.fields.write_field`) and
+    ``folder/truth.json``, into an existing (working) folder."""
     from ..fields import write_field
 
-    out_dir = os.path.abspath(out_dir)
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        raise InputError(f"--out {out_dir} is a file; name a new folder")
-    if os.path.isdir(out_dir) and os.listdir(out_dir):
-        raise InputError(f"--out {out_dir} already holds files; name a new or empty folder (a truth is never mixed with another)")
-    parent = os.path.dirname(out_dir)
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=".truth-", dir=parent)
-    try:
-        os.makedirs(os.path.join(tmp, "fields"))
-        for n, f in enumerate(series.fields_mm):
-            write_field(f, series.geometry, os.path.join(tmp, "fields", f"frame_{n:04d}.nii.gz"))
-        with open(os.path.join(tmp, "truth.json"), "w") as fh:
-            json.dump(series.record, fh, indent=1)
-        if os.path.isdir(out_dir):
-            os.rmdir(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    os.makedirs(os.path.join(folder, "fields"))
+    for n, f in enumerate(series.fields_mm):
+        write_field(f, series.geometry, os.path.join(folder, "fields", f"frame_{n:04d}.nii.gz"))
+    with open(os.path.join(folder, "truth.json"), "w") as fh:
+        json.dump(series.record, fh, indent=1)
+
+
+def write_truth(series: TruthSeries, out_dir: str) -> None:
+    """:func:`write_truth_files` into ``out_dir`` through :class:`warpmpm.output_folder.OutputFolder`: written in a
+    working folder beside it and moved into place, so a failure leaves nothing half-written; an existing ``out_dir``
+    that is not empty is refused (a truth is never mixed with another), and so is a second writer."""
+    from ..output_folder import OutputFolder
+
+    with OutputFolder(out_dir, kind="truth") as work:
+        write_truth_files(series, work)

@@ -1,0 +1,248 @@
+"""Output folders that never cost a user their data.
+
+Every command that writes a folder (``track``, ``make-cine``, ``make-truth``) writes it through
+:class:`OutputFolder`:
+
+- **Nothing deleted that this tool did not write.** An existing, non-empty ``--out`` is replaced only with
+  ``--overwrite`` and only when it holds this tool's record file (:data:`RECORD`, written into every folder the
+  tool makes) of the same kind; an input of the run (the planning series, the cine folder, a label map ...) is
+  never an output folder, nor inside one. A symbolic link is refused (name the real folder).
+- **One writer.** A lock file beside ``--out`` (``.NAME.lock``, holding the writer's process id) makes a second
+  run on the same ``--out`` fail at once; a lock whose process is gone (a killed run) is taken over.
+- **Nothing half-written.** The result is written into a working folder beside ``--out`` and moved into place
+  when it is complete; an old result is moved aside first and removed only once the new one is in place.
+  A killed run leaves its working folder, which the next run in the same parent folder removes (it carries the
+  dead process's id).
+
+Every refusal is an :class:`~warpmpm.errors.InputError` naming the folder and the fix, raised before any work.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Iterable
+
+from .errors import InputError
+
+__all__ = ["RECORD", "OutputFolder", "check_not_an_input", "remove_dead_work_folders"]
+
+RECORD = "warpmpm-output.json"
+"""The record file in every output folder this tool writes: ``{"kind": ..., "version": ..., "created": ...}``.
+``--overwrite`` replaces a folder only when it holds this file."""
+
+WORK_PREFIX = ".warpmpm-work-"
+
+
+def _real(path: str) -> str:
+    return os.path.realpath(os.path.abspath(path))
+
+
+def _inside(path: str, folder: str) -> bool:
+    """``path`` is ``folder`` or lies under it (both real paths)."""
+    return path == folder or path.startswith(folder.rstrip(os.sep) + os.sep)
+
+
+def check_not_an_input(out: str, option: str, inputs: Iterable[tuple[str, str]]) -> None:
+    """Refuse an output path that is one of the run's inputs or holds one. ``inputs``: (option, path) pairs; None
+    paths are skipped."""
+    real = _real(out)
+    for opt, path in inputs:
+        if not path:
+            continue
+        p = _real(path)
+        if _inside(p, real):
+            what = "is" if p == real else "holds"
+            raise InputError(f"{option} {out} {what} the input {opt} {path}: an output never replaces an input; name a "
+                             "new folder")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _read_pid(path: str) -> int | None:
+    try:
+        with open(path) as fh:
+            return int(fh.read().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def remove_dead_work_folders(parent: str) -> None:
+    """Remove the working folders that killed runs left in ``parent``: those carrying the id of a process that is
+    gone (a folder without one is not ours, or still being created, and is left alone)."""
+    try:
+        names = os.listdir(parent)
+    except OSError:
+        return
+    for name in names:
+        path = os.path.join(parent, name)
+        if not (name.startswith((WORK_PREFIX, ".track-")) and os.path.isdir(path) and not os.path.islink(path)):
+            continue
+        pid = _read_pid(os.path.join(path, "pid"))
+        if pid is None or _pid_alive(pid):
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        print(f"removed {path}: the unfinished work of a run that was killed", file=sys.stderr)
+
+
+class OutputFolder:
+    """A result folder written whole or not at all (module docstring).
+
+    ``with OutputFolder(out, kind="track", overwrite=False, inputs=[("--cine", cine)]) as work:`` checks ``out`` and
+    takes its lock on construction (so a refusal comes before any work), yields the working folder to write into,
+    and on a clean exit moves it into place as ``out``; on an exception the working folder is removed and ``out``
+    is left as it was.
+
+    Args:
+        out: the output folder.
+        kind: what the folder holds (``track``, ``cine``, ``truth``); ``--overwrite`` replaces only a folder of the
+            same kind.
+        overwrite: replace an existing folder of this tool's of the same kind.
+        inputs: (option, path) of every input of the run: none may be ``out`` or lie inside it.
+        option: the option's name in messages.
+        record: extra fields for the record file.
+    """
+
+    def __init__(self, out: str, *, kind: str, overwrite: bool = False, inputs: Iterable[tuple[str, str]] = (),
+                 option: str = "--out", record: dict | None = None):
+        self.given, self.kind, self.option = out, kind, option
+        self.out = os.path.abspath(out)
+        self.parent = os.path.dirname(self.out)
+        self.record = dict(record or {})
+        self.work: str | None = None
+        self._lock: str | None = None
+        self._replace = False
+        if os.path.islink(self.out):
+            raise InputError(f"{option} {out} is a symbolic link; name the folder itself ({os.path.realpath(self.out)}) "
+                             "or a new one")
+        if not os.path.isdir(self.parent):
+            raise InputError(f"the folder {self.parent} for {option} does not exist; create it first")
+        if not os.access(self.parent, os.W_OK | os.X_OK):
+            raise InputError(f"the folder {self.parent} for {option} is not writable; name a folder you can write to")
+        if os.path.exists(self.out) and not os.path.isdir(self.out):
+            raise InputError(f"{option} {out} is a file; name a new folder")
+        check_not_an_input(self.out, option, inputs)
+        if os.path.isdir(self.out):
+            try:
+                entries = os.listdir(self.out)
+            except OSError as exc:
+                raise InputError(f"{option} {out} cannot be read ({exc.strerror}); name a new folder") from None
+            if entries:
+                if not overwrite:
+                    raise InputError(f"{option} {out} already holds files; name a new folder, or add --overwrite to "
+                                     f"replace it whole (only an earlier {kind} of this tool's is replaced)")
+                rec = self._read_record(self.out)
+                if rec is None:
+                    raise InputError(f"{option} {out} holds files this tool did not write (no {RECORD}): --overwrite "
+                                     f"replaces only an earlier {kind} of warpmpm's; name a new folder")
+                if rec.get("kind") != kind:
+                    raise InputError(f"{option} {out} holds a warpmpm {rec.get('kind')!r}, not a {kind}: --overwrite "
+                                     f"replaces only an earlier {kind}; name a new folder")
+                self._replace = True
+        self._take_lock()
+
+    @staticmethod
+    def _read_record(folder: str) -> dict | None:
+        path = os.path.join(folder, RECORD)
+        if not os.path.isfile(path) or os.path.islink(path):
+            return None
+        try:
+            with open(path) as fh:
+                rec = json.load(fh)
+        except (OSError, ValueError):
+            return None
+        return rec if isinstance(rec, dict) else None
+
+    def _take_lock(self) -> None:
+        lock = os.path.join(self.parent, f".{os.path.basename(self.out)}.lock")
+        for _ in range(2):
+            try:
+                fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                pid = _read_pid(lock)
+                if pid is not None and pid != os.getpid() and _pid_alive(pid):
+                    raise InputError(f"{self.option} {self.given} is being written by another warpmpm run (process "
+                                     f"{pid}, lock {lock}); wait for it to finish or name another folder") from None
+                try:  # the lock of a run that was killed (or an unreadable one): taken over
+                    os.remove(lock)
+                except FileNotFoundError:
+                    pass
+                continue
+            except OSError as exc:
+                raise InputError(f"cannot lock {self.option} {self.given} ({lock}: {exc.strerror}); name a folder you "
+                                 "can write to") from None
+            with os.fdopen(fd, "w") as fh:
+                fh.write(str(os.getpid()))
+            self._lock = lock
+            return
+        raise InputError(f"{self.option} {self.given}: another run keeps taking its lock {lock}; wait for it to finish")
+
+    def release(self) -> None:
+        """Drop the lock (and a working folder not moved into place)."""
+        if self.work is not None:
+            shutil.rmtree(self.work, ignore_errors=True)
+            self.work = None
+        if self._lock is not None:
+            try:
+                os.remove(self._lock)
+            except OSError:
+                pass
+            self._lock = None
+
+    def __enter__(self) -> str:
+        remove_dead_work_folders(self.parent)
+        try:
+            self.work = tempfile.mkdtemp(prefix=f"{WORK_PREFIX}{self.kind}-", dir=self.parent)
+            with open(os.path.join(self.work, "pid"), "w") as fh:  # whose it is: a later run removes it if this one was killed
+                fh.write(str(os.getpid()))
+        except OSError as exc:
+            self.release()
+            raise InputError(f"cannot write beside {self.option} {self.given} ({exc.strerror}); name a folder you can "
+                             "write to") from None
+        return self.work
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        try:
+            if exc_type is None:
+                self._commit()
+        finally:
+            self.release()
+        return False
+
+    def _commit(self) -> None:
+        from . import __version__
+
+        os.remove(os.path.join(self.work, "pid"))
+        rec = {"kind": self.kind, "written_by": f"warpmpm {__version__}",
+               "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **self.record}
+        with open(os.path.join(self.work, RECORD), "w") as fh:
+            json.dump(rec, fh, indent=1)
+        if os.path.lexists(self.out):
+            if os.path.islink(self.out) or not os.path.isdir(self.out):
+                raise InputError(f"{self.option} {self.given} appeared while this run wrote it; the result was not "
+                                 "moved there: run again with a new folder")
+            if os.listdir(self.out):
+                if not self._replace or self._read_record(self.out) is None:
+                    raise InputError(f"{self.option} {self.given} was filled by someone else while this run wrote it; "
+                                     "nothing was replaced: run again with a new folder")
+                old = tempfile.mkdtemp(prefix=f"{WORK_PREFIX}old-", dir=self.parent)
+                os.replace(self.out, os.path.join(old, "previous"))  # aside first: the old result survives a failure here
+                os.replace(self.work, self.out)
+                self.work = None
+                shutil.rmtree(old, ignore_errors=True)
+                return
+            os.rmdir(self.out)
+        os.replace(self.work, self.out)
+        self.work = None
