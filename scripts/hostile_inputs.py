@@ -204,13 +204,253 @@ def cases(d):
     ]
 
 
+# the clinic's files, broken as a careless or unlucky clinic would (issue 51) ---------------------------------------------
+
+def _edit_dicom(src, dst, edit):
+    """Copy the DICOM file ``src`` to ``dst`` with ``edit(ds)`` applied."""
+    import pydicom
+
+    ds = pydicom.dcmread(src)
+    edit(ds)
+    ds.save_as(dst)
+
+
+def _copy_folder(src, dst, edit_each=None, only=None):
+    """Copy a folder of DICOM files, editing each (or the file names in ``only``) with ``edit_each(ds, k)``."""
+    import shutil
+
+    os.makedirs(dst, exist_ok=True)
+    for k, name in enumerate(sorted(os.listdir(src))):
+        if edit_each is not None and (only is None or k in only):
+            _edit_dicom(os.path.join(src, name), os.path.join(dst, name), lambda ds, k=k: edit_each(ds, k))
+        else:
+            shutil.copy(os.path.join(src, name), os.path.join(dst, name))
+
+
+def make_clinic_files(d):
+    """A phantom clinic set (planning MR series, RT Structure Set, RT Dose of 50 Gy around the pancreas, a sagittal DICOM
+    cine of the same session: its frame of reference and patient) and broken copies of each of its files."""
+    import shutil
+
+    import numpy as np
+    import pydicom
+
+    from warpmpm.cli import main as warpmpm
+    from warpmpm.dicom_rt import write_rtdose, write_rtstruct, write_series
+    from warpmpm.images import load_case
+
+    c = f"{d}/clinic"
+    os.makedirs(c, exist_ok=True)
+    with open(os.devnull, "w") as null:
+        import contextlib
+
+        with contextlib.redirect_stdout(null), contextlib.redirect_stderr(null):
+            assert warpmpm(["make-cine", "--phantom-resolution", "3", "--frames", "3", "--plane", "sagittal", "--out",
+                            f"{c}/made"]) == 0
+    case = load_case(f"{c}/made/planning/labels.nii.gz", f"{c}/made/planning/image.nii.gz")
+    ref = write_series(case.intensity_image(), f"{c}/series", "MR", patient_id="CLINIC-1")
+    masks = {o: case.labels == v for o, v in case.label_map.items()}
+    names = {"pancreas": "Pancreas", "stomach": "Stomach", "duodenum": "Duodenum", "left_kidney": "Kidney_L"}
+    write_rtstruct(f"{c}/RS.dcm", ref, masks, names)
+    dose = np.where(masks["pancreas"], 50.0, 10.0)
+    write_rtdose(f"{c}/RD.dcm", ref, dose)
+
+    def same_session(ds, k):  # the cine of the planning session: its frame of reference and patient
+        ds.FrameOfReferenceUID = ref.frame_of_reference_uid
+        ds.PatientID = ref.patient_id
+
+    _copy_folder(f"{c}/made/cine", f"{c}/cine", same_session)
+    shutil.rmtree(f"{c}/made/truth")
+    first = sorted(os.listdir(f"{c}/cine"))
+    # cine
+    _copy_folder(f"{c}/cine", f"{c}/cine_negative_spacing", lambda ds, k: setattr(ds, "PixelSpacing", ["-2", "-2"]))
+    _copy_folder(f"{c}/cine", f"{c}/cine_one_untimed", lambda ds, k: delattr(ds, "AcquisitionTime"), only={1})
+    _copy_folder(f"{c}/cine", f"{c}/cine_no_spacing", lambda ds, k: delattr(ds, "PixelSpacing"), only={0})
+    _copy_folder(f"{c}/cine", f"{c}/cine_no_position", lambda ds, k: delattr(ds, "ImagePositionPatient"), only={0})
+    _copy_folder(f"{c}/cine", f"{c}/cine_hours", lambda ds, k: setattr(ds, "AcquisitionTime", f"{10 + k:02d}"))
+    _copy_folder(f"{c}/cine", f"{c}/cine_other_for", lambda ds, k: setattr(ds, "FrameOfReferenceUID", "1.2.826.0.1.3680043.2.1125.77"))
+    _copy_folder(f"{c}/cine", f"{c}/cine_other_patient", lambda ds, k: setattr(ds, "PatientID", "SOMEONE-ELSE"))
+    # structure sets
+    rs = pydicom.dcmread(f"{c}/RS.dcm")
+
+    def dup_number(ds):
+        ds.StructureSetROISequence[1].ROINumber = ds.StructureSetROISequence[0].ROINumber
+
+    _edit_dicom(f"{c}/RS.dcm", f"{c}/RS_dup_number.dcm", dup_number)
+
+    def nan_point(ds):
+        cd = list(ds.ROIContourSequence[0].ContourSequence[0].ContourData)
+        cd[0] = "nan"
+        ds.ROIContourSequence[0].ContourSequence[0].ContourData = cd
+
+    _edit_dicom(f"{c}/RS.dcm", f"{c}/RS_nan.dcm", nan_point)
+    data = open(f"{c}/RS.dcm", "rb").read()
+    open(f"{c}/RS_cut.dcm", "wb").write(data[: int(len(data) * 0.6)])
+    k_top = max(float(cc.ContourData[2]) for cc in rs.ROIContourSequence[0].ContourSequence)
+
+    def off_series(ds):  # the pancreas's top contours moved 200 mm up: off the series
+        for cc in ds.ROIContourSequence[0].ContourSequence:
+            pts = [float(v) for v in cc.ContourData]
+            if pts[2] >= k_top - 10:
+                cc.ContourData = [f"{v + 200.0 if i % 3 == 2 else v:.3f}" for i, v in enumerate(pts)]
+
+    _edit_dicom(f"{c}/RS.dcm", f"{c}/RS_off_series.dcm", off_series)
+    # doses
+    _edit_dicom(f"{c}/RD.dcm", f"{c}/RD_no_scaling.dcm", lambda ds: delattr(ds, "DoseGridScaling"))
+    _edit_dicom(f"{c}/RD.dcm", f"{c}/RD_nan_scaling.dcm", lambda ds: setattr(ds, "DoseGridScaling", "nan"))
+    _edit_dicom(f"{c}/RD.dcm", f"{c}/RD_zero_spacing.dcm", lambda ds: setattr(ds, "PixelSpacing", ["0", "0"]))
+    _edit_dicom(f"{c}/RD.dcm", f"{c}/RD_cgy.dcm", lambda ds: setattr(ds, "DoseGridScaling", f"{float(ds.DoseGridScaling) * 100:.8g}"))
+    _edit_dicom(f"{c}/RD.dcm", f"{c}/RD_other_for.dcm", lambda ds: setattr(ds, "FrameOfReferenceUID", "1.2.826.0.1.3680043.2.1125.78"))
+
+    def negative(ds):
+        ds.PixelRepresentation = 1
+        arr = ds.pixel_array.astype(np.int32) // 2
+        arr.flat[0] = -1000
+        ds.PixelData = arr.astype("<i2").tobytes()
+
+    _edit_dicom(f"{c}/RD.dcm", f"{c}/RD_negative.dcm", negative)
+
+    def small_grid(ds):  # the dose grid covers the lower half of the slices only
+        n = int(ds.NumberOfFrames) // 3
+        arr = ds.pixel_array[:n]
+        ds.NumberOfFrames = n
+        ds.GridFrameOffsetVector = list(ds.GridFrameOffsetVector)[:n]
+        ds.PixelData = np.ascontiguousarray(arr).astype("<u2").tobytes()
+
+    _edit_dicom(f"{c}/RD.dcm", f"{c}/RD_small_grid.dcm", small_grid)
+    # beam-on files
+    open(f"{c}/beam_binary.csv", "wb").write(bytes(range(256)) * 4)
+    open(f"{c}/beam_bom.csv", "w", encoding="utf-8-sig").write("frame,beam_on_s\n0,0.2\n1,0.2\n2,0.2\n")
+    open(f"{c}/beam_huge.csv", "w").write("frame,beam_on_s\n0,1e308\n1,1e308\n2,0.2\n")
+    # planning series
+    series = sorted(os.listdir(f"{c}/series"))
+    _copy_folder(f"{c}/series", f"{c}/series_gap")
+    os.remove(f"{c}/series_gap/{series[len(series) // 2]}")
+    _copy_folder(f"{c}/series", f"{c}/series_spacing", lambda ds, k: setattr(ds, "PixelSpacing", ["3.5", "3.5"]), only={4})
+    tilt = np.radians(10.0)
+    _copy_folder(f"{c}/series", f"{c}/series_tilted", lambda ds, k: setattr(
+        ds, "ImageOrientationPatient", ["1", "0", "0", "0", f"{np.cos(tilt):.6f}", f"{np.sin(tilt):.6f}"]), only={4})
+
+    def no_uids(ds, k):
+        for tag in ("StudyInstanceUID", "SeriesInstanceUID", "FrameOfReferenceUID"):
+            setattr(ds, tag, "")
+
+    _copy_folder(f"{c}/series", f"{c}/series_empty_uids", no_uids)
+    # other commands' files
+    import json
+
+    open(f"{c}/model_list.json", "w").write(json.dumps([1, 2, 3]))
+    open(f"{c}/random.csv", "wb").write(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    open(f"{c}/other_columns.csv", "w").write("a,b,c\n1,2,3\n4,5,6\n")
+    os.makedirs(f"{c}/cut_track")
+    open(f"{c}/cut_track/track.csv", "w").write("frame,time_s,plane,latency_s\n0,0.0,0,0.1\n1,0.3,0,0.")
+    return first
+
+
+def clinic_cases(d):
+    """(name, argv, expected) for the clinic's broken files of :func:`make_clinic_files` (issue 51)."""
+    c = f"{d}/clinic"
+    track = ["warpmpm", "track", "--device", "cpu", "--image", f"{c}/series", "--rtstruct", f"{c}/RS.dcm"]
+
+    def t(name, *extra, expected="error", cine=f"{c}/cine"):
+        return (f"clinic: {name}", [*track, "--cine", cine, "--out", f"{d}/out_{abs(hash(name)) % 10**8}", *extra], expected)
+
+    w = ["warpmpm"]
+    return [
+        t("the clean clinic set", "--dose", f"{c}/RD.dcm", "--dicom", expected="ok"),
+        ("clinic: --overwrite onto the cine folder", [*track, "--cine", f"{c}/cine", "--out", f"{c}/cine", "--overwrite"], "error"),
+        ("clinic: --overwrite onto the planning series", [*track, "--cine", f"{c}/cine", "--out", f"{c}/series", "--overwrite"],
+         "error"),
+        t("negative PixelSpacing on every cine frame", cine=f"{c}/cine_negative_spacing"),
+        t("one cine frame without AcquisitionTime", cine=f"{c}/cine_one_untimed"),
+        t("a cine frame without PixelSpacing", cine=f"{c}/cine_no_spacing"),
+        t("a cine frame without ImagePositionPatient", cine=f"{c}/cine_no_position"),
+        t("AcquisitionTime given as hours only", cine=f"{c}/cine_hours", expected="ok"),
+        t("a cine on another frame of reference", cine=f"{c}/cine_other_for"),
+        t("a cine on another frame of reference, said to be registered", "--assume-registered", cine=f"{c}/cine_other_for",
+          expected="warning"),
+        t("a cine of another patient", cine=f"{c}/cine_other_patient"),
+        ("clinic: two ROIs sharing a ROINumber", [*track[:6], "--rtstruct", f"{c}/RS_dup_number.dcm", "--cine", f"{c}/cine",
+                                                  "--out", f"{d}/o1"], "error"),
+        ("clinic: a NaN contour point", [*track[:6], "--rtstruct", f"{c}/RS_nan.dcm", "--cine", f"{c}/cine", "--out", f"{d}/o2"],
+         "error"),
+        ("clinic: a structure set cut at 60 %", [*track[:6], "--rtstruct", f"{c}/RS_cut.dcm", "--cine", f"{c}/cine", "--out",
+                                                 f"{d}/o3"], "error"),
+        ("clinic: pancreas contours off the series", [*track[:6], "--rtstruct", f"{c}/RS_off_series.dcm", "--cine", f"{c}/cine",
+                                                      "--out", f"{d}/o4"], "warning"),
+        t("an RT Dose without DoseGridScaling", "--dose", f"{c}/RD_no_scaling.dcm"),
+        t("an RT Dose with DoseGridScaling NaN", "--dose", f"{c}/RD_nan_scaling.dcm"),
+        t("an RT Dose with PixelSpacing 0", "--dose", f"{c}/RD_zero_spacing.dcm"),
+        t("an RT Dose in cGy labelled GY", "--dose", f"{c}/RD_cgy.dcm"),
+        t("an RT Dose with negative voxels", "--dose", f"{c}/RD_negative.dcm"),
+        t("an RT Dose on another frame of reference", "--dose", f"{c}/RD_other_for.dcm"),
+        t("a dose grid that misses part of the organs", "--dose", f"{c}/RD_small_grid.dcm", expected="warning"),
+        t("a binary beam-on CSV", "--dose", f"{c}/RD.dcm", "--beam-on", f"{c}/beam_binary.csv"),
+        t("a beam-on CSV with a UTF-8 BOM", "--dose", f"{c}/RD.dcm", "--beam-on", f"{c}/beam_bom.csv", expected="ok"),
+        t("a beam-on time of 1e308 s", "--dose", f"{c}/RD.dcm", "--beam-on", f"{c}/beam_huge.csv"),
+        ("clinic: a planning series with a missing slice", ["warpmpm", "track", "--device", "cpu", "--image", f"{c}/series_gap",
+                                                            "--rtstruct", f"{c}/RS.dcm", "--cine", f"{c}/cine", "--out", f"{d}/o5"],
+         "error"),
+        ("clinic: a planning slice of another pixel spacing", ["warpmpm", "track", "--device", "cpu", "--image", f"{c}/series_spacing",
+                                                               "--rtstruct", f"{c}/RS.dcm", "--cine", f"{c}/cine", "--out", f"{d}/o6"],
+         "error"),
+        ("clinic: a planning slice tilted 10 degrees", ["warpmpm", "track", "--device", "cpu", "--image", f"{c}/series_tilted",
+                                                        "--rtstruct", f"{c}/RS.dcm", "--cine", f"{c}/cine", "--out", f"{d}/o7"],
+         "error"),
+        ("clinic: /dev/zero as the labels", w + ["make-truth", "--image", f"{c}/made/planning/image.nii.gz", "--labels",
+                                                 "/dev/zero", "--out", f"{d}/o8"], "error"),
+        ("clinic: plan-planes --model on a JSON list", w + ["plan-planes", "--image", f"{c}/made/planning/image.nii.gz",
+                                                            "--labels", f"{c}/made/planning/labels.nii.gz", "--method", "model",
+                                                            "--model", f"{c}/model_list.json"], "error"),
+        ("clinic: plan-planes --picture where nothing can be written", w + [
+            "plan-planes", "--image", f"{c}/made/planning/image.nii.gz", "--labels", f"{c}/made/planning/labels.nii.gz",
+            "--method", "model", "--picture", "/proc/warpmpm-planes.png"], "error"),
+        ("clinic: train-planes on random bytes", w + ["train-planes", f"{c}/random.csv", "--out", f"{d}/o9.json"], "error"),
+        ("clinic: train-planes on a CSV of other columns", w + ["train-planes", f"{c}/other_columns.csv", "--out", f"{d}/o10.json"],
+         "error"),
+        ("clinic: sweep-planes resuming a CSV of random bytes", w + ["sweep-planes", "--out", f"{c}/random.csv"], "error"),
+        ("clinic: sweep-planes resuming a CSV of other columns", w + ["sweep-planes", "--out", f"{c}/other_columns.csv"], "error"),
+        ("clinic: evaluate-track on a track.csv cut mid-line", w + ["evaluate-track", "--track", f"{c}/cut_track", "--truth",
+                                                                    f"{c}/made/truth"], "error"),
+    ]
+
+
+def run_in_process(argv):
+    """Run ``warpmpm argv`` in this process: (exit code, stderr). An exception that escapes :func:`warpmpm.cli.main` is
+    reported as a traceback (it would be one on the command line)."""
+    import contextlib
+    import io
+    import traceback
+    import warnings
+
+    from warpmpm.cli import main as warpmpm
+
+    err, out = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out), warnings.catch_warnings():
+        warnings.simplefilter("always")
+        import warnings as w
+
+        show = w.showwarning
+        w.showwarning = lambda m, c, f, n, file=None, line=None: print(f"warning: {m}", file=sys.stderr)
+        try:
+            code = warpmpm(argv)
+        except SystemExit as exc:  # argparse
+            code = exc.code
+        except BaseException:  # noqa: BLE001
+            print(traceback.format_exc(), file=sys.stderr)
+            code = 1
+        finally:
+            w.showwarning = show
+    return code, err.getvalue()
+
+
 def classify(proc, expected, outputs_before, d, api=False):
     err = proc.stderr
     left = set(os.listdir(d)) - outputs_before
     lines = [ln for ln in err.strip().splitlines() if ln.strip()]
     if api and lines and lines[-1].startswith("warpmpm.errors.InputError"):
         return "clear error"  # the API raises InputError naming the problem (a traceback is how Python shows it)
-    if "Traceback" in err:
+    if "Traceback" in err or "internal error:" in err:
         return "crash"
     if proc.returncode not in (0,) and left:
         return "partial output"

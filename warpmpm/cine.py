@@ -202,11 +202,45 @@ def _name_time(path: str) -> tuple[float, str]:
     return float("nan"), "file order"
 
 
+def _dicom_numbers(reader, tag: str) -> list[float] | None:
+    """A multi-valued numeric tag ("a\\b\\c") as floats; None when absent or empty; [nan] when unreadable."""
+    if not reader.HasMetaDataKey(tag):
+        return None
+    text = str(reader.GetMetaData(tag)).strip()
+    if not text:
+        return None
+    try:
+        return [float(x) for x in text.split("\\")]
+    except ValueError:
+        return [float("nan")]
+
+
+def _check_dicom_geometry(reader, path: str) -> None:
+    """A cine frame placed by its own tags or refused: PixelSpacing (two positive numbers), ImagePositionPatient (three
+    finite numbers), ImageOrientationPatient (two perpendicular unit vectors). ITK otherwise reads 1 mm pixels at the
+    origin, or takes a negative spacing's absolute value, without a word."""
+    checks = (("0028|0030", "PixelSpacing", 2, lambda v: all(x > 0 for x in v), "two positive numbers (mm)"),
+              ("0020|0032", "ImagePositionPatient", 3, lambda v: True, "three finite numbers (mm)"),
+              ("0020|0037", "ImageOrientationPatient", 6,
+               lambda v: abs(np.linalg.norm(v[:3]) - 1) < 1e-3 and abs(np.linalg.norm(v[3:]) - 1) < 1e-3
+               and abs(np.dot(v[:3], v[3:])) < 1e-3, "two perpendicular unit vectors"))
+    for tag, name, n, ok, want in checks:
+        v = _dicom_numbers(reader, tag)
+        if v is None:
+            raise InputError(f"cine frame {path} has no {name}: it cannot be placed in the patient (a frame without it would "
+                             f"be read at 1 mm pixels at the scanner's origin); export the cine with its geometry tags")
+        if len(v) != n or not all(np.isfinite(v)) or not ok(np.asarray(v)):
+            raise InputError(f"cine frame {path} has an unusable {name} {reader.GetMetaData(tag).strip()!r}: {want} are "
+                             "required; export the cine again from the scanner")
+
+
 def _dicom_frame(path: str) -> CineFrame:
     try:
         reader = sitk.ImageFileReader()
         reader.SetFileName(path)
         reader.LoadPrivateTagsOff()
+        reader.ReadImageInformation()
+        _check_dicom_geometry(reader, path)
         image = reader.Execute()
     except RuntimeError as exc:
         raise InputError(f"cannot read cine frame {path}: {str(exc).strip().splitlines()[-1]}") from None
@@ -234,8 +268,9 @@ def read_frame(path: str) -> CineFrame:
     Its ``time_s`` is the file's own time in s (seconds of the day for a Unity ``.bin`` or a DICOM time; the export's
     file-name time; NaN when the file holds none). Raises :class:`InputError` naming the file when it cannot be read.
     """
-    if not os.path.isfile(path):
-        raise InputError(f"cine frame not found: {path}")
+    from .errors import check_input_file
+
+    check_input_file(path, "cine frame")
     low = path.lower()
     if low.endswith(".bin"):
         return _unity_frame(path)
@@ -303,6 +338,15 @@ def read_cine(folder: str) -> list[CineFrame]:
             b = next(f for f in frames if getattr(f, attr) and getattr(f, attr) != getattr(a, attr))
             raise InputError(f"cine frames of two series in {folder}: {os.path.basename(a.path)} and {os.path.basename(b.path)} "
                              f"have another {what} ({getattr(a, attr)} vs {getattr(b, attr)}); keep one session's cine per folder")
+    sources = {f.time_from for f in frames}
+    if len(sources) > 1:  # one frame's time from another clock (or none) would misplace it among the others
+        counts = {src: sum(f.time_from == src for f in frames) for src in sources}
+        rare = min(counts, key=counts.get)
+        odd = [os.path.basename(f.path) for f in frames if f.time_from == rare]
+        raise InputError(f"cine frames in {folder} take their times from different clocks: {', '.join(odd[:5])}"
+                         f"{' ...' if len(odd) > 5 else ''} from {rare}, the others from "
+                         f"{', '.join(sorted(sources - {rare}))}; a frame's place in the series would be wrong. Export the "
+                         "cine again with every frame's AcquisitionTime, or remove those frames")
     timed = all(np.isfinite(f.time_s) for f in frames)
     if not timed:  # no time in some file: the order of the instance numbers, then of the file names; one s apart
         order = sorted(range(len(frames)), key=lambda n: (frames[n].instance, n))
@@ -369,19 +413,32 @@ def _dicom_int(reader, tag: str) -> int:
         return 0
 
 
+def _dicom_clock(v: str) -> float:
+    """Seconds of the day of a DICOM TM value: HH, HHMM, HHMMSS or HHMMSS.FFFFFF (and the old HH:MM:SS); ValueError else."""
+    v = v.replace(":", "")
+    whole, _, frac = v.partition(".")
+    if len(whole) not in (2, 4, 6) or not whole.isdigit() or (frac and not frac.isdigit()):
+        raise ValueError(v)
+    hh, mm, ss = int(whole[0:2]), int(whole[2:4] or 0), int(whole[4:6] or 0)
+    if hh > 23 or mm > 59 or ss > 60 or (frac and len(whole) != 6):
+        raise ValueError(v)
+    return hh * 3600 + mm * 60 + ss + (float("0." + frac) if frac else 0.0)
+
+
 def _dicom_time_s(reader, path: str) -> tuple[float, str]:
     """Seconds of the day from AcquisitionDateTime, AcquisitionTime or ContentTime (NaN when none)."""
     for tag, name in (("0008|002a", "AcquisitionDateTime"), ("0008|0032", "AcquisitionTime"), ("0008|0033", "ContentTime")):
         if reader.HasMetaDataKey(tag):
             v = str(reader.GetMetaData(tag)).strip()
             if tag == "0008|002a":
-                v = v[8:]  # YYYYMMDDHHMMSS.frac -> HHMMSS.frac
+                v = v[8:].split("+")[0].split("-")[0]  # YYYYMMDDHHMMSS.frac&ZZXX -> HHMMSS.frac
             if not v:
                 continue
             try:
-                return int(v[0:2]) * 3600 + int(v[2:4]) * 60 + float(v[4:].split("+")[0].split("-")[0] or 0), name
+                return _dicom_clock(v), name
             except ValueError:
-                raise InputError(f"cine frame {path} has an unreadable {name} {v!r}") from None
+                raise InputError(f"cine frame {path} has an unreadable {name} {v!r} (HHMMSS.FFFFFF expected); mend the "
+                                 "tag or export the cine again") from None
     return float("nan"), "file order"
 
 

@@ -223,16 +223,18 @@ def read_volume(path: str | os.PathLike) -> sitk.Image:
     path = os.fspath(path)
     if not os.path.exists(path):
         raise InputError(f"file not found: {path}")
+    if not (os.path.isfile(path) or os.path.isdir(path)):
+        raise InputError(f"{path} is not a regular file (a device or a pipe?); give an image file or a DICOM series folder")
+    if os.path.isfile(path) and os.path.getsize(path) == 0:
+        raise InputError(f"{path} is empty (0 bytes); copy it again from the source")
     if os.path.isfile(path):
         check_file_integrity(path)
     try:
         if os.path.isdir(path):
+            from .dicom_rt.series import series_headers
+
             reader = sitk.ImageSeriesReader()
-            series = reader.GetGDCMSeriesIDs(path)
-            if not series:
-                raise InputError(f"no DICOM series found in folder {path}")
-            files = reader.GetGDCMSeriesFileNames(path, series[0])
-            reader.SetFileNames(files)
+            reader.SetFileNames([s.filename for s in series_headers(path)])  # checked: one series, whole, on one grid
             image = reader.Execute()
         else:
             image = sitk.ReadImage(path)

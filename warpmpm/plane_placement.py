@@ -279,23 +279,27 @@ class PlacementModel:
     def load(path: str = DEFAULT_PLACEMENT_MODEL) -> "PlacementModel":
         import xgboost as xgb
 
-        if not os.path.exists(path):
-            raise InputError(f"plane-placement model {path} not found; train one with `warpmpm train-planes`")
-        with open(path) as f:
-            try:
+        if not os.path.isfile(path):
+            raise InputError(f"plane-placement model {path} not found (or not a file); train one with `warpmpm train-planes`")
+        fix = "give a model made by `warpmpm train-planes`, or leave --model out for the shipped one"
+        try:
+            with open(path, encoding="utf-8") as f:
                 doc = json.load(f)
-            except json.JSONDecodeError as exc:
-                raise InputError(f"{path} is not a plane-placement model (not JSON: {exc})") from None
-        if doc.get("kind") != "warpmpm plane-placement model":
-            raise InputError(f"{path} is not a plane-placement model (made by `warpmpm train-planes`)")
-        if tuple(doc["features"]) != FEATURES or tuple(doc.get("inputs", ())) != ORGAN_INPUTS:
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise InputError(f"{path} is not a plane-placement model (not JSON: {exc}); {fix}") from None
+        if not isinstance(doc, dict) or doc.get("kind") != "warpmpm plane-placement model":
+            raise InputError(f"{path} is not a plane-placement model (made by `warpmpm train-planes`); {fix}")
+        if tuple(doc.get("features", ())) != FEATURES or tuple(doc.get("inputs", ())) != ORGAN_INPUTS:
             raise InputError(f"{path} was trained on other features than this warpmpm computes; retrain it")
         boosters = {}
-        for o, raw in doc["boosters"].items():
-            b = xgb.Booster()
-            b.load_model(bytearray(raw.encode()))
-            b.set_param({"nthread": 1})
-            boosters[o] = b
+        try:
+            for o, raw in doc["boosters"].items():
+                b = xgb.Booster()
+                b.load_model(bytearray(raw.encode()))
+                b.set_param({"nthread": 1})
+                boosters[o] = b
+        except Exception as exc:  # noqa: BLE001 - a hand-edited or cut model: xgboost's own errors
+            raise InputError(f"{path}: its boosters cannot be read ({type(exc).__name__}); {fix}") from None
         return PlacementModel(boosters, doc["method"], tuple(doc["features"]), doc.get("params", {}), doc.get("trained_on", {}))
 
 

@@ -248,13 +248,17 @@ class ConditionSelector:
 
         if not os.path.exists(path) or not os.path.exists(path + ".meta.json"):
             raise InputError(f"selection model {path} (and its .meta.json) not found; train one with `warpmpm train`")
-        booster = xgb.Booster()
-        booster.load_model(path)
-        booster.set_param({"nthread": 1})  # ~100 candidate rows: threads cost more than they save
-        with open(path + ".meta.json") as f:
-            meta = json.load(f)
-        return ConditionSelector(booster, meta["target"], meta.get("params", {}), tuple(meta["features"]),
-                              tuple(meta.get("combinations", COMBINATIONS)), tuple(meta.get("orientations", ("axial",))))
+        fix = "give a model made by `warpmpm train` (the model file and its .meta.json beside it)"
+        try:
+            booster = xgb.Booster()
+            booster.load_model(path)
+            booster.set_param({"nthread": 1})  # ~100 candidate rows: threads cost more than they save
+            with open(path + ".meta.json", encoding="utf-8") as f:
+                meta = json.load(f)
+            return ConditionSelector(booster, meta["target"], meta.get("params", {}), tuple(meta["features"]),
+                                     tuple(meta.get("combinations", COMBINATIONS)), tuple(meta.get("orientations", ("axial",))))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, xgb.core.XGBoostError) as exc:
+            raise InputError(f"selection model {path} cannot be read ({type(exc).__name__}: {str(exc)[:120]}); {fix}") from None
 
     def rank(self, model: ParticleModel, orientations=None, combinations=None, k: int | None = 5):
         """Best conditions first: list of ((orientation, slice, combination), predicted value), and the time (s).

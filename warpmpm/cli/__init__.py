@@ -80,7 +80,7 @@ def main(argv=None) -> int:
     except SimulationError as exc:
         print(f"simulation error: {exc}", file=sys.stderr)
         return EXIT_SIMULATION
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # the resumable sweeps say themselves what they kept
         print("interrupted: nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # the reader of stdout went away (`warpmpm ... | head`): stop without a traceback

@@ -80,6 +80,23 @@ def _tasks_common(a):
     return cases, deformations
 
 
+def _resumable(out_csv: str, run):
+    """``run()``; on Ctrl-C one line saying what is kept (the rows finished so far stay in ``out_csv``) and exit 130."""
+    try:
+        return run()
+    except KeyboardInterrupt:
+        from ..experiment.io import read_rows
+        from .exit_codes import EXIT_INTERRUPTED
+
+        try:
+            n = len(read_rows(out_csv))
+        except (InputError, OSError):
+            n = None
+        kept = f"the {n} rows finished so far are kept in {out_csv}" if n else f"no row was written to {out_csv}"
+        print(f"interrupted: {kept}; run the same command again to resume", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
 def _write_table(out_csv: str, table: str) -> None:
     from ..experiment.io import check_output_path
 
@@ -105,8 +122,12 @@ def cmd_sweep(a) -> int:
                       exclude_driven=True if a.exclude_driven else None)
     for combo in combos:
         replace(base, organs=combo)  # each combination checked before any task starts
-    rows, failed = sweep(cases, deformations, combos, tuple(a.orientations.split(",")), a.out, protocol=a.protocol,
-                         slice_stride=a.slice_stride, base=base, scheduler=a.scheduler, workers=a.workers)
+    done = _resumable(a.out, lambda: sweep(cases, deformations, combos, tuple(a.orientations.split(",")), a.out,
+                                           protocol=a.protocol, slice_stride=a.slice_stride, base=base, scheduler=a.scheduler,
+                                           workers=a.workers))
+    if isinstance(done, int):
+        return done
+    rows, failed = done
     table = summarize(rows)
     print(table)
     _write_table(a.out, table)
@@ -132,9 +153,13 @@ def cmd_sweep_planes(a) -> int:
         n = refresh_features(out, cases, step, progress=lambda m: print(m, file=sys.stderr))
         print(f"{n} rows of {out} refreshed with today's placement features")
         return 0
-    rows, failed = sweep_planes(cases, seeds, [x for x in a.loads.split(",") if x], tuple(f for f in a.families.split(",") if f),
-                                a.positions, out, truth_cell_mm=a.truth_cell_mm, particle_step=step, scheduler=a.scheduler,
-                                workers=a.workers, progress=lambda m: print(m, file=sys.stderr))
+    done = _resumable(out, lambda: sweep_planes(cases, seeds, [x for x in a.loads.split(",") if x],
+                                                tuple(f for f in a.families.split(",") if f), a.positions, out,
+                                                truth_cell_mm=a.truth_cell_mm, particle_step=step, scheduler=a.scheduler,
+                                                workers=a.workers, progress=lambda m: print(m, file=sys.stderr)))
+    if isinstance(done, int):
+        return done
+    rows, failed = done
     done = [r for r in rows if not r.get("failure")]
     print(f"{len(done)} placements scored in {out}" + (f"; {len(failed)} tasks failed" if failed else ""))
     return EXIT_TASKS_FAILED if failed else 0
@@ -154,8 +179,12 @@ def cmd_multi(a) -> int:
         raise InputError(f"output folder {d} for --out does not exist")
     base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device,
                       protocol=a.protocol)
-    rows, failed = multi_direction(cases, deformations, a.selector or DEFAULT_SELECTOR, a.plane_selector or DEFAULT_PLANE_SELECTOR,
-                                   a.out, base=base, top=a.top, workers=a.workers, scheduler=a.scheduler)
+    done = _resumable(a.out, lambda: multi_direction(cases, deformations, a.selector or DEFAULT_SELECTOR,
+                                                     a.plane_selector or DEFAULT_PLANE_SELECTOR, a.out, base=base, top=a.top,
+                                                     workers=a.workers, scheduler=a.scheduler))
+    if isinstance(done, int):
+        return done
+    rows, failed = done
     table = summarize_multi(rows)
     print(table)
     _write_table(a.out, table)

@@ -288,6 +288,16 @@ def build_parser() -> argparse.ArgumentParser:
     ki.add_argument("--trackrad-centre", default=None, metavar="X,Y,Z",
                    help="a TrackRAD case as --cine keeps no patient position: the point (mm, LPS, in the planning scan) the "
                    "sagittal frames are centred on (write --trackrad-centre=X,Y,Z when X is negative)")
+    ki.add_argument("--assume-registered", action="store_true",
+                   help="the cine and the dose are in the planning scan's coordinates although their DICOM Frame of Reference "
+                   "differs from the planning series' (you registered them): a warning instead of a refusal. Another "
+                   "patient's files are refused all the same")
+    ki.add_argument("--max-dose-gy", type=float, default=120.0,
+                   help="the largest dose a voxel of --dose may hold (Gy, default %(default)s): a dose above it (cGy labelled "
+                   "Gy, a wrong DoseGridScaling) is refused")
+    ki.add_argument("--dose-coverage-warn", type=float, default=1.0,
+                   help="warn when more than this percentage of an organ's voxels is carried outside the dose grid in a "
+                   "frame (default %(default)s %%); each organ's share per frame is in dose/dose_coverage.csv")
     ko = k.add_argument_group("outputs")
     ko.add_argument("--out", required=True, help="output folder (created)")
     ko.add_argument("--overwrite", action="store_true", help="replace an --out folder that already holds a track (whole)")

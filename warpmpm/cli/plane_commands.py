@@ -216,6 +216,11 @@ def cmd_train_planes(a) -> int:
     """``warpmpm train-planes``: the placement model from plane-sweep CSVs, reported split by case."""
     from ..experiment.train_planes import train_planes
 
+    from ..experiment.io import check_output_path
+
+    for path, option in ((a.out, "--out"), (a.report, "--report")):
+        if path:
+            check_output_path(path, option, inputs=[("CSV", p) for p in a.csv])
     test_cases = [c for c in a.test_cases.split(",") if c] if a.test_cases else None
     train_planes(a.csv, test_cases=test_cases, method=a.method, out=a.out, report=a.report, storage=a.storage,
                  max_trials=a.max_trials, patience=a.patience, progress=lambda m: print(m, file=sys.stdout))

@@ -49,38 +49,80 @@ def _beam_on(path: str, n_frames: int) -> list[float]:
     import numpy as np
 
     if not os.path.isfile(path):
-        raise InputError(f"--beam-on file not found: {path}")
+        raise InputError(f"--beam-on file not found (or not a regular file): {path}")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # a spreadsheet's byte-order mark is accepted
+            text = f.read()
+    except UnicodeDecodeError:
+        raise InputError(f"--beam-on {path} is not a text CSV (it is not UTF-8); save it as CSV with columns "
+                         "frame,beam_on_s") from None
+    if "\x00" in text:
+        raise InputError(f"--beam-on {path} is not a text CSV (it holds NUL bytes); save it as CSV with columns frame,beam_on_s")
     weights = [None] * n_frames
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        if not reader.fieldnames or not {"frame", "beam_on_s"} <= set(reader.fieldnames):
-            raise InputError(f"--beam-on {path}: columns frame,beam_on_s are required (it has {reader.fieldnames})")
-        for line, row in enumerate(reader, start=2):
-            try:
-                n, t = int(row["frame"]), float(row["beam_on_s"])
-            except (TypeError, ValueError):
-                raise InputError(f"--beam-on {path}, line {line}: frame must be an integer and beam_on_s a number") from None
-            if not 0 <= n < n_frames:
-                raise InputError(f"--beam-on {path}, line {line}: frame {n} is not one of the cine's {n_frames} frames (0-{n_frames - 1})")
-            if not (np.isfinite(t) and t >= 0):
-                raise InputError(f"--beam-on {path}, line {line}: beam_on_s {t} must be finite and >= 0")
-            if weights[n] is not None:
-                raise InputError(f"--beam-on {path}, line {line}: frame {n} is given twice")
-            weights[n] = t
+    reader = csv.DictReader(text.splitlines())
+    fields = [f.strip() for f in (reader.fieldnames or [])]
+    if not {"frame", "beam_on_s"} <= set(fields):
+        raise InputError(f"--beam-on {path}: columns frame,beam_on_s are required (it has {reader.fieldnames})")
+    reader.fieldnames = fields
+    for line, row in enumerate(reader, start=2):
+        try:
+            n, t = int(row["frame"]), float(row["beam_on_s"])
+        except (TypeError, ValueError):
+            raise InputError(f"--beam-on {path}, line {line}: frame must be an integer and beam_on_s a number") from None
+        if not 0 <= n < n_frames:
+            raise InputError(f"--beam-on {path}, line {line}: frame {n} is not one of the cine's {n_frames} frames (0-{n_frames - 1})")
+        if not (np.isfinite(t) and 0 <= t <= 3600.0):
+            raise InputError(f"--beam-on {path}, line {line}: beam_on_s {t} must be a number of seconds in 0..3600 (one "
+                             "frame's beam-on time)")
+        if weights[n] is not None:
+            raise InputError(f"--beam-on {path}, line {line}: frame {n} is given twice")
+        weights[n] = t
     missing = [n for n, w in enumerate(weights) if w is None]
     if missing:
         raise InputError(f"--beam-on {path} gives no beam_on_s for frames {missing[:10]}{' ...' if len(missing) > 10 else ''}")
+    if sum(weights) <= 0:
+        raise InputError(f"--beam-on {path}: every frame's beam_on_s is 0: no frame carried dose")
     return weights
 
 
-def _dicom_writer(case, a, work, frames=()):
-    """The planning series the DICOM outputs refer to: the user's (a DICOM --image), else the planning image written as one."""
-    from ..dicom_rt import FrameDicomWriter, read_series_reference, write_series
-    from ..images import grid_differences
+def _planning_reference(a, case):
+    """The planning series' reference (UIDs, patient) when the planning image is a DICOM series; None otherwise."""
+    from ..dicom_rt import read_series_reference
 
     ref = case.meta.get("dicom")
     if ref is None and os.path.isdir(a.image):
         ref = read_series_reference(a.image)
+    return ref
+
+
+def _check_same_patient(ref, what: str, path: str, frame_of_reference: str, patient: str, registered: bool) -> None:
+    """Refuse ``what`` (the cine, the dose) of another patient than the planning series, and on another frame of
+    reference unless the user says it is registered (then warn)."""
+    import warnings
+
+    from ..errors import InputWarning
+
+    if ref is None:
+        return
+    if patient and ref.patient_id and patient != ref.patient_id:
+        raise InputError(f"{what} {path} is of patient {patient!r}, the planning series {ref.patient_id!r}: another "
+                         "patient's files are never combined; check the export")
+    own_frame = "FrameOfReferenceUID" not in ref.extra.get("generated_uids", ())  # a series without one: nothing to check
+    if own_frame and frame_of_reference and ref.frame_of_reference_uid and frame_of_reference != ref.frame_of_reference_uid:
+        text = (f"{what} {path} is on frame of reference {frame_of_reference}, the planning series on "
+                f"{ref.frame_of_reference_uid}")
+        if not registered:
+            raise InputError(f"{text}: its coordinates are another scanner session's. Register it to the planning scan, "
+                             "or add --assume-registered if they are already in the planning scan's coordinates")
+        warnings.warn(f"{text}; taken as in the planning scan's coordinates (--assume-registered)", InputWarning, stacklevel=2)
+
+
+def _dicom_writer(case, a, work, frames=()):
+    """The planning series the DICOM outputs refer to: the user's (a DICOM --image), else the planning image written as one."""
+    from ..dicom_rt import FrameDicomWriter, write_series
+    from ..images import grid_differences
+
+    ref = _planning_reference(a, case)
     if ref is not None:
         diff = grid_differences(ref.geometry, case.geometry)
         if diff:
@@ -124,6 +166,10 @@ def cmd_track(a) -> int:
         if a.trackrad_centre:
             raise InputError(f"--trackrad-centre places a TrackRAD case; {a.cine} is not one (its frames carry their own position)")
         frames = read_cine(a.cine)
+    ref = _planning_reference(a, case)
+    first = next((f for f in frames if f.frame_of_reference or f.patient), None)
+    if first is not None:
+        _check_same_patient(ref, "the cine", a.cine, first.frame_of_reference, first.patient, a.assume_registered)
     from ..output_folder import OutputFolder
 
     # checked and locked before any work: never an input, never a folder this tool did not write, one writer at a time
@@ -153,7 +199,11 @@ def _track_into(a, case, frames, folder) -> int:
 
         organs_wanted = [o for o, c in zip(("pancreas", "stomach", "duodenum", "left_kidney"), "psdl") if c in a.organs]
         masks = {o: case.labels == v for o, v in case.label_map.items() if o in organs_wanted}
-        dose = DoseAccumulator(read_dose(a.dose), case.geometry, masks)
+        planned = read_dose(a.dose, a.max_dose_gy)
+        meta = {k: planned.GetMetaData(k) if planned.HasMetaDataKey(k) else "" for k in ("frame_of_reference", "patient")}
+        _check_same_patient(_planning_reference(a, case), "the dose", a.dose, meta["frame_of_reference"], meta["patient"],
+                            a.assume_registered)
+        dose = DoseAccumulator(planned, case.geometry, masks, warn_outside_pct=a.dose_coverage_warn)
         weights = _beam_on(a.beam_on, len(frames)) if a.beam_on else None
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "

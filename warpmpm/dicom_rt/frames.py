@@ -31,6 +31,15 @@ class FrameDicomWriter:
         folder = os.path.join(out_dir, "dicom", f"frame_{n:04d}")
         os.makedirs(folder, exist_ok=True)
         masks = {o: labels == v for o, v in label_map.items()}
+        empty = [self.roi_names.get(o, o) for o, m in masks.items() if not m.any()]
+        if empty:
+            import warnings
+
+            from ..errors import InputWarning
+
+            warnings.warn(f"frame {n}: the estimated {', '.join(repr(e) for e in empty)} cover{'s' if len(empty) == 1 else ''} "
+                          f"no voxel of the planning grid (moved outside the planning scan?); {'its ROI is' if len(empty) == 1 else 'their ROIs are'} "
+                          f"empty in {os.path.join(folder, 'RS.dcm')}", InputWarning, stacklevel=2)
         what = f"warpmpm frame {n} (t = {time_s:.3f} s)"
         write_rtstruct(os.path.join(folder, "RS.dcm"), self.ref, masks, self.roi_names, label=f"frame {n}", description=what)
         write_registration(os.path.join(folder, "REG.dcm"), self.ref, field_mm, description=what,

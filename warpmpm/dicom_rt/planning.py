@@ -26,23 +26,21 @@ def case_from_rtstruct(image_folder: str, rtstruct: str, mapping: dict[str, str]
     """
     import warnings
 
-    import pydicom
-
     from ..errors import InputWarning
     from ..images import PRESETS, Case, read_volume
 
-    if not os.path.isfile(rtstruct):
-        raise InputError(f"structure set not found: {rtstruct}")
+    from ..errors import check_input_file
+
+    check_input_file(rtstruct, "structure set", "give the planning RT Structure Set (RS*.dcm)")
     if not os.path.isdir(image_folder):
         raise InputError(f"--rtstruct needs the planning image as a DICOM series folder (--image FOLDER); {image_folder} is not a folder")
     ref = read_series_reference(image_folder)
     image = read_volume(image_folder)
     geometry = Geometry.of(image)
     ref.geometry = geometry
-    try:
-        names = [str(r.ROIName) for r in pydicom.dcmread(rtstruct, stop_before_pixels=True).get("StructureSetROISequence", [])]
-    except Exception as exc:  # noqa: BLE001
-        raise InputError(f"cannot read the structure set {rtstruct}: {exc}") from None
+    from .rtstruct import _read_structure_set, _roi_names
+
+    names = list(_roi_names(_read_structure_set(rtstruct), rtstruct).values())
     letters = {"p": "pancreas", "s": "stomach", "d": "duodenum", "l": "left_kidney"}
     wanted = [letters[c] for c in organs if c in letters]
     found = find_structures(names, mapping, organs=tuple(letters.values()))
@@ -51,14 +49,17 @@ def case_from_rtstruct(image_folder: str, rtstruct: str, mapping: dict[str, str]
         leave = ("the pancreas is always modelled" if missing[0] == "pancreas" else "or leave the organ out with --organs")
         raise InputError(f"the structure set {rtstruct} has no structure for {', '.join(missing)} (it holds: {', '.join(names)}); "
                          f"name it with --structure {missing[0]}=NAME; {leave}")
-    masks = read_rtstruct(rtstruct, geometry, ref.frame_of_reference_uid, rois=[found[o] for o in wanted])
+    own_frame = "FrameOfReferenceUID" not in ref.extra.get("generated_uids", ())  # else nothing to check it against
+    masks = read_rtstruct(rtstruct, geometry, ref.frame_of_reference_uid if own_frame else None, rois=[found[o] for o in wanted])
     label_map = dict(PRESETS["amos"])
     labels = np.zeros(tuple(geometry.size[::-1]), dtype=np.int32)
     overlaps = []
     for organ in ("pancreas", "duodenum", "stomach", "left_kidney"):
         if organ not in wanted:
             continue
-        m = masks[found[organ]]
+        m = masks.get(found[organ])
+        if m is None:
+            raise InputError(f"structure {found[organ]!r} ({organ}) in {rtstruct} has no contours; draw it in the planning system")
         if not m.any():
             raise InputError(f"structure {found[organ]!r} ({organ}) in {rtstruct} covers no voxel of the planning image")
         taken = m & (labels > 0)

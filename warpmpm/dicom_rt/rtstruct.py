@@ -141,25 +141,24 @@ def read_rtstruct(path: str, geometry: Geometry, frame_of_reference_uid: str | N
     another frame of reference than ``frame_of_reference_uid``, a contour off the grid's slices, an empty contour
     or one that crosses itself.
     """
-    import pydicom
     from matplotlib.path import Path
 
-    try:
-        ds = pydicom.dcmread(path)
-    except Exception as exc:  # noqa: BLE001
-        raise InputError(f"cannot read the structure set {path}: {exc}") from None
-    if str(ds.get("SOPClassUID", "")) != RT_STRUCTURE_SET:
-        raise InputError(f"{path} is not an RT Structure Set (SOP class {ds.get('SOPClassUID', 'missing')})")
-    frames = {str(f.FrameOfReferenceUID) for f in ds.get("ReferencedFrameOfReferenceSequence", [])}
-    names = {int(r.ROINumber): str(r.ROIName) for r in ds.get("StructureSetROISequence", [])}
+    ds = _read_structure_set(path)
+    frames = {str(f.get("FrameOfReferenceUID", "")) for f in ds.get("ReferencedFrameOfReferenceSequence", [])} - {""}
+    names = _roi_names(ds, path)
     roi_frames = {int(r.ROINumber): str(r.get("ReferencedFrameOfReferenceUID", "")) for r in ds.get("StructureSetROISequence", [])}
     g = geometry
     shape = tuple(g.size[::-1])
     jj, ii = np.mgrid[0:shape[1], 0:shape[2]]
     centres = np.column_stack([ii.ravel(), jj.ravel()]).astype(np.float64)
     out = {}
+    off_series: dict[str, int] = {}
     for rc in ds.get("ROIContourSequence", []):
-        number = int(rc.ReferencedROINumber)
+        try:
+            number = int(rc.ReferencedROINumber)
+        except (AttributeError, TypeError, ValueError):
+            raise InputError(f"the structure set {path} has a contour sequence without a valid ReferencedROINumber; export "
+                             "it again from the planning system") from None
         name = names.get(number, f"ROI {number}")
         if rois is not None and name not in rois:
             continue
@@ -171,9 +170,15 @@ def read_rtstruct(path: str, geometry: Geometry, frame_of_reference_uid: str | N
         mask = np.zeros(shape, dtype=bool)
         for c in rc.get("ContourSequence", []):
             kind = str(c.get("ContourGeometricType", "CLOSED_PLANAR"))
-            data = np.asarray([float(v) for v in c.get("ContourData", [])], dtype=np.float64)
+            try:
+                data = np.asarray([float(v) for v in c.get("ContourData", [])], dtype=np.float64)
+            except (TypeError, ValueError):
+                raise InputError(f"structure {name!r} in {path}: a contour holds a value that is not a number") from None
             if kind == "POINT":
                 continue
+            if not np.all(np.isfinite(data)):
+                raise InputError(f"structure {name!r} in {path}: a contour holds a non-finite (NaN or Inf) point; mend it in "
+                                 "the planning system")
             if data.size < 9 or data.size % 3:
                 raise InputError(f"structure {name!r} in {path}: a contour with {data.size // 3} points; a closed contour "
                                  "needs at least 3")
@@ -184,6 +189,7 @@ def read_rtstruct(path: str, geometry: Geometry, frame_of_reference_uid: str | N
                 raise InputError(f"structure {name!r} in {path}: a contour at slice position {k:.2f} does not lie on a slice "
                                  "of the planning image (contours must be drawn on the image's slices)")
             if not 0 <= kr < shape[0]:
+                off_series[name] = off_series.get(name, 0) + 1
                 continue
             poly = ijk[:, :2]
             if _self_intersects(poly):
@@ -196,7 +202,47 @@ def read_rtstruct(path: str, geometry: Geometry, frame_of_reference_uid: str | N
             window[max(lo[1], 0):hi[1] + 1, max(lo[0], 0):hi[0] + 1] = True
             mask[kr] ^= inside & window
         out[name] = mask
+    if off_series:
+        import warnings
+
+        from ..errors import InputWarning
+
+        warnings.warn(f"the structure set {path} has contours beyond the planning series' slices, left out: "
+                      + ", ".join(f"{n} contour(s) of {name!r}" for name, n in off_series.items())
+                      + "; is the series complete?", InputWarning, stacklevel=2)
     return out
+
+
+def _read_structure_set(path: str):
+    """The structure set's dataset, refused (naming the file) when unreadable, cut, or of another SOP class."""
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(path)
+        ds.get("StructureSetROISequence", [])  # parse the sequences now: a file cut short fails here, not later
+        ds.get("ROIContourSequence", [])
+    except Exception as exc:  # noqa: BLE001 - pydicom's many ways to fail on a broken file
+        raise InputError(f"cannot read the structure set {path} ({type(exc).__name__}: {exc}); is it cut short? Export it "
+                         "again from the planning system") from None
+    if str(ds.get("SOPClassUID", "")) != RT_STRUCTURE_SET:
+        raise InputError(f"{path} is not an RT Structure Set (SOP class {ds.get('SOPClassUID', 'missing')})")
+    return ds
+
+
+def _roi_names(ds, path: str) -> dict[int, str]:
+    """ROI number -> name; refused when a number is missing, not a number, or used twice."""
+    names: dict[int, str] = {}
+    for r in ds.get("StructureSetROISequence", []):
+        try:
+            number = int(r.ROINumber)
+        except (AttributeError, TypeError, ValueError):
+            raise InputError(f"the structure set {path} has an ROI without a valid ROINumber; export it again") from None
+        name = str(r.get("ROIName", "") or f"ROI {number}")
+        if number in names:
+            raise InputError(f"the structure set {path} gives ROINumber {number} to two structures ({names[number]!r} and "
+                             f"{name!r}): which contours are whose cannot be told; export it again from the planning system")
+        names[number] = name
+    return names
 
 
 def find_structures(roi_names, mapping: dict[str, str] | None = None, organs=("pancreas", "stomach", "duodenum", "left_kidney")):

@@ -91,13 +91,20 @@ def write_series(image: sitk.Image, folder: str, modality: str = "MR", patient_n
     return ref
 
 
-def read_series_reference(folder: str) -> SeriesReference:
-    """The reference of a DICOM image series in ``folder`` (one series; slices sorted along their normal)."""
+def series_headers(folder: str) -> list:
+    """The headers (pydicom datasets, no pixels) of the DICOM image series in ``folder``, sorted along the slice normal,
+    checked as a planning system checks a series before it uses it. Refused, naming the files:
+
+    - no image with a position, or more than one series in the folder;
+    - a slice without ImagePositionPatient, ImageOrientationPatient or PixelSpacing, or with unusable values;
+    - slices of another orientation (a tilted slice), pixel spacing or size than the others, or shifted in plane;
+    - two slices at one position; uneven gaps between slices (a missing slice: everything beyond it would be misplaced).
+    """
     import pydicom
 
     if not os.path.isdir(folder):
         raise InputError(f"DICOM series folder not found: {folder}")
-    slices = []
+    slices, seen = [], 0
     for name in sorted(os.listdir(folder)):
         p = os.path.join(folder, name)
         if not os.path.isfile(p):
@@ -106,22 +113,103 @@ def read_series_reference(folder: str) -> SeriesReference:
             ds = pydicom.dcmread(p, stop_before_pixels=True)
         except Exception:  # noqa: BLE001 - not DICOM: skipped, as a series reader does
             continue
-        if "ImagePositionPatient" in ds and "ImageOrientationPatient" in ds:
+        seen += 1
+        if "PixelData" in ds or "ImagePositionPatient" in ds or "Rows" in ds:
             slices.append(ds)
     if not slices:
-        raise InputError(f"no DICOM images with a position in {folder}")
-    series = {str(s.SeriesInstanceUID) for s in slices}
+        raise InputError(f"no DICOM images in {folder}" + (f" ({seen} other DICOM files)" if seen else ""))
+    series = {str(s.get("SeriesInstanceUID", "")) for s in slices}
     if len(series) > 1:
         raise InputError(f"{folder} holds {len(series)} DICOM series; keep the planning series alone in its folder")
-    iop = np.array([float(x) for x in slices[0].ImageOrientationPatient])
-    normal = np.cross(iop[:3], iop[3:])
-    slices.sort(key=lambda s: float(np.array([float(x) for x in s.ImagePositionPatient]) @ normal))
+
+    def numbers(ds, tag, n):
+        try:
+            v = np.array([float(x) for x in ds.get(tag)], dtype=np.float64)
+        except (TypeError, ValueError):
+            v = np.array([])
+        if v.size != n or not np.all(np.isfinite(v)):
+            raise InputError(f"planning slice {ds.filename} has {'no' if tag not in ds else 'an unusable'} {tag} "
+                             f"({ds.get(tag, '')!s}); every slice must be placed: export the series again")
+        return v
+
+    for ds in slices:
+        ds._iop, ds._ipp, ds._ps = (numbers(ds, "ImageOrientationPatient", 6), numbers(ds, "ImagePositionPatient", 3),
+                                    numbers(ds, "PixelSpacing", 2))
+        if not np.all(ds._ps > 0):
+            raise InputError(f"planning slice {ds.filename} has PixelSpacing {ds._ps.tolist()}; two positive numbers (mm) "
+                             "are required")
+    first = slices[0]
+    normal = np.cross(first._iop[:3], first._iop[3:])
+    for ds in slices[1:]:
+        name = os.path.basename(ds.filename)
+        if np.abs(ds._iop - first._iop).max() > 1e-4:
+            angle = np.degrees(np.arccos(np.clip(abs(np.cross(ds._iop[:3], ds._iop[3:]) @ normal), -1, 1)))
+            raise InputError(f"planning slice {name} in {folder} is tilted {angle:.1f} degrees against "
+                             f"{os.path.basename(first.filename)} (ImageOrientationPatient); a series of parallel slices is "
+                             "required: export it again, or resample it onto one grid")
+        if np.abs(ds._ps - first._ps).max() > 1e-4 or (int(ds.get("Rows", 0)), int(ds.get("Columns", 0))) != \
+                (int(first.get("Rows", 0)), int(first.get("Columns", 0))):
+            raise InputError(f"planning slice {name} in {folder} has another pixel spacing or size "
+                             f"({ds._ps.tolist()} mm, {ds.get('Rows')} x {ds.get('Columns')}) than "
+                             f"{os.path.basename(first.filename)} ({first._ps.tolist()} mm, {first.get('Rows')} x "
+                             f"{first.get('Columns')}); one grid is required: export the series again")
+    slices.sort(key=lambda s: float(s._ipp @ normal))
+    pos = np.array([float(s._ipp @ normal) for s in slices])
+    inplane = np.array([s._ipp - (s._ipp @ normal) * normal for s in slices])
+    if len(slices) > 1:
+        if np.abs(inplane - inplane[0]).max() > 0.01 * float(first._ps.min()) + 1e-3:
+            k = int(np.argmax(np.abs(inplane - inplane[0]).max(1)))
+            raise InputError(f"planning slice {os.path.basename(slices[k].filename)} in {folder} is shifted in its plane "
+                             "against the others (a gantry-tilted or sheared stack); resample the series onto one grid")
+        gaps = np.diff(pos)
+        if np.any(gaps < 1e-3):
+            k = int(np.argmin(gaps))
+            raise InputError(f"planning slices {os.path.basename(slices[k].filename)} and "
+                             f"{os.path.basename(slices[k + 1].filename)} in {folder} lie at the same position "
+                             f"({pos[k]:.2f} mm); remove the duplicate")
+        step = float(np.median(gaps))
+        uneven = np.nonzero(np.abs(gaps - step) > max(0.01 * step, 1e-3))[0]
+        if len(uneven):
+            k = int(uneven[0])
+            missing = int(round(gaps[k] / step)) - 1
+            what = (f"{missing} slice{'s' if missing > 1 else ''} missing" if missing >= 1
+                    else "slices unevenly spaced")
+            raise InputError(f"planning series {folder}: {gaps[k]:.2f} mm between {os.path.basename(slices[k].filename)} "
+                             f"({pos[k]:.2f} mm) and {os.path.basename(slices[k + 1].filename)} ({pos[k + 1]:.2f} mm), "
+                             f"{step:.2f} mm elsewhere ({what}); everything beyond would be misplaced. Export the whole "
+                             "series again")
+    return slices
+
+
+def read_series_reference(folder: str) -> SeriesReference:
+    """The reference of a DICOM image series in ``folder`` (one series, checked by :func:`series_headers`; slices sorted
+    along their normal). A UID the series leaves empty (Study, Series, Frame of Reference, an image's SOP Instance) is
+    generated for the outputs that refer to it, and a warning says so."""
+    import warnings
+
+    from ..errors import InputWarning
+
+    slices = series_headers(folder)
     image = sitk.ReadImage([s.filename for s in slices]) if len(slices) > 1 else sitk.ReadImage(slices[0].filename)
     s0 = slices[0]
-    for tag in ("FrameOfReferenceUID", "StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID"):
-        if tag not in s0:
-            raise InputError(f"DICOM series in {folder} has no {tag}")
-    return SeriesReference(str(s0.StudyInstanceUID), str(s0.SeriesInstanceUID), str(s0.FrameOfReferenceUID),
-                           str(s0.SOPClassUID), [str(s.SOPInstanceUID) for s in slices], Geometry.of(image),
-                           str(s0.get("PatientName", "")), str(s0.get("PatientID", "")), str(s0.get("StudyDate", "")),
-                           str(s0.get("StudyTime", "")), str(s0.get("StudyID", "")), str(s0.get("AccessionNumber", "")))
+    made = []
+
+    def uid(ds, tag):
+        value = str(ds.get(tag, "") or "").strip()
+        if not value:
+            made.append(tag)
+            value = _uid()
+        return value
+
+    study, series, frame = (uid(s0, t) for t in ("StudyInstanceUID", "SeriesInstanceUID", "FrameOfReferenceUID"))
+    instances = [uid(s, "SOPInstanceUID") for s in slices]
+    sop_class = str(s0.get("SOPClassUID", "") or "").strip() or (CT_IMAGE if str(s0.get("Modality", "")) == "CT" else MR_IMAGE)
+    if made:
+        warnings.warn(f"the planning series {folder} has no value for {', '.join(sorted(set(made)))}: new UIDs were made for "
+                      "the DICOM files written from it, which a planning system will not link to this series; export "
+                      "the series with its UIDs to keep them linked", InputWarning, stacklevel=2)
+    ref = SeriesReference(study, series, frame, sop_class, instances, Geometry.of(image),
+                          str(s0.get("PatientName", "")), str(s0.get("PatientID", "")), str(s0.get("StudyDate", "")),
+                          str(s0.get("StudyTime", "")), str(s0.get("StudyID", "")), str(s0.get("AccessionNumber", "")))
+    ref.extra["generated_uids"] = sorted(set(made))
+    return ref

@@ -263,11 +263,19 @@ def evaluate_track(track_dir: str, truth_dir: str) -> dict:
     ``propagate`` and ``initial``; every organ's mean error, p95 and superior-inferior error (``organs``); latency
     median and p95 (s). ``truth_dir``: a ``make-cine`` truth (``positions.npz``) or displacement fields (a
     ``make-truth`` folder, or a folder of ``frame_NNNN.nii.gz`` on the planning grid)."""
-    import csv
+    from .io import read_csv
 
+    if not os.path.isdir(track_dir):
+        raise InputError(f"--track {track_dir} is not a folder; give the --out folder of a `warpmpm track`")
+    fix = "give the --out folder of a finished `warpmpm track`, or track again"
+    rows = read_csv(os.path.join(track_dir, "track.csv"), "track table", ("frame", "latency_s"), fix, torn="refuse")
     if not os.path.exists(os.path.join(track_dir, "particles.npz")):
-        raise InputError(f"{os.path.join(track_dir, 'particles.npz')} not found")
-    tr = np.load(os.path.join(track_dir, "particles.npz"))
+        raise InputError(f"{os.path.join(track_dir, 'particles.npz')} not found; {fix}")
+    try:
+        tr = np.load(os.path.join(track_dir, "particles.npz"))
+        tr = {k: tr[k] for k in ("planning_mm", "estimate_mm", "propagate_mm", "organ_index", "organs")}
+    except Exception as exc:  # noqa: BLE001 - numpy's many ways to fail on a broken archive
+        raise InputError(f"{os.path.join(track_dir, 'particles.npz')} cannot be read ({type(exc).__name__}: {exc}); {fix}") from None
     if os.path.exists(os.path.join(truth_dir, "positions.npz")):
         gt = np.load(os.path.join(truth_dir, "positions.npz"))
     else:
@@ -286,8 +294,6 @@ def evaluate_track(track_dir: str, truth_dir: str) -> dict:
     lab = sitk.ReadImage(os.path.join(track_dir, "labels", "frame_0000.nii.gz"))
 
     geom = Geometry.of(lab)
-    with open(os.path.join(track_dir, "track.csv")) as f:
-        rows = list(csv.DictReader(f))
     methods = {"estimate": tr["estimate_mm"], "propagate": tr["propagate_mm"], "initial": np.repeat(tr["planning_mm"][None], n, 0)}
     frames = []
     for k in range(n):

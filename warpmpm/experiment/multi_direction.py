@@ -88,7 +88,8 @@ def multi_direction(cases: list[dict], deformations, selector_path: str, plane_s
     for path in (selector_path, plane_selector_path):
         ConditionSelector.load(path)  # fail early, naming the missing model
     base = base or CaseConfig()
-    with CsvAppender(out_csv, MULTI_FIELDS) as out:
+    with CsvAppender(out_csv, MULTI_FIELDS, ("case",), "multi-direction CSV",
+                     "resume a CSV of `warpmpm multi`, or name a new --out") as out:
         rows = read_rows(out_csv)
         done = {(r["case"], str(r["deformation"])) for r in rows}
         args = [(c, int(d), selector_path, plane_selector_path, base, top) for c in cases for d in deformations

@@ -98,7 +98,8 @@ def refresh_features(out_csv: str, cases: list[dict], particle_step: int = 1, pr
 
     if not os.path.exists(out_csv):
         raise InputError(f"plane-sweep CSV {out_csv} not found")
-    with CsvAppender(out_csv, PLANE_SWEEP_FIELDS) as out:  # holds the lock: no sweep writes meanwhile
+    with CsvAppender(out_csv, PLANE_SWEEP_FIELDS, ("case", "truth_seed", "load", "family", "planes"), "plane-sweep CSV",
+                     "make one with `warpmpm sweep-planes`") as out:  # holds the lock: no sweep writes meanwhile
         out.f.close()  # rewritten whole below, not appended to
         rows = read_rows(out_csv)
         n = 0
@@ -131,21 +132,12 @@ def plane_sweep_task(case: dict, truth_seed: int, load: str, families: tuple, n_
     """All rows of one (case, truth seed, load) not in ``done``; a plain function of picklable arguments (runs inline,
     in a process pool or on Dask). A placement whose run fails is kept as a row with its ``failure``. ``methods``:
     those of :data:`METHODS` to score (``("initial", "copy")`` skips the completion's set-up)."""
-    import time
-
-    from ..fields import write_field
-    from ..images import load_case, write_case
+    from ..images import load_case
     from ..phantom import make_phantom
-    from ..solvers.completion import CompletionConfig, CompletionModel, complete
-    from ..truth_fem import TruthConfig, make_truth
-    from .baselines import propagate
+    from ..truth_fem import TruthConfig
     from .case import prepare_case
     from .config import CaseConfig
-    from .fem_cases import peak_frame
-    from .organs import baseline_positions, organ_scores
     from .sweep import case_config
-    from .target_kinds import run_targets
-    from .truth import gt_for_model, make_ground_truth
 
     name = case.get("name", "case")
     cfg0 = case_config(CaseConfig(device="cpu", particle_step=int(particle_step)), case)
@@ -157,7 +149,37 @@ def plane_sweep_task(case: dict, truth_seed: int, load: str, families: tuple, n_
     tcfg = TruthConfig(loads=tuple(load.split("+")), frames=16, seed=int(truth_seed))
     if truth_cell_mm is not None:
         tcfg = replace(tcfg, cell_mm=float(truth_cell_mm))
-    work = tempfile.mkdtemp(prefix="plane-sweep-")
+    if done:  # a resumed sweep: a task whose placements are all in the CSV is skipped before its truth is made
+        prep0 = prepare_case(cfg0)
+        model0 = prep0.model(cfg0.organs)
+        todo = [label for family in families for label in placement_labels(prep0, model0, family, n_positions)
+                if (name, str(truth_seed), load, label) not in done]
+        if not todo:
+            return []
+    work = tempfile.mkdtemp(prefix="warpmpm-plane-sweep-")
+    try:
+        return _plane_sweep_rows(case, name, cfg0, whole, tcfg, work, truth_seed, load, families, n_positions, done, methods)
+    finally:
+        import shutil
+
+        shutil.rmtree(work, ignore_errors=True)  # the task's truth and planning files: never left in the temp folder
+
+
+def _plane_sweep_rows(case, name, cfg0, whole, tcfg, work, truth_seed, load, families, n_positions, done, methods):
+    """:func:`plane_sweep_task`'s rows, its files written in ``work``."""
+    import time
+
+    from ..fields import write_field
+    from ..images import write_case
+    from ..solvers.completion import CompletionConfig, CompletionModel, complete
+    from ..truth_fem import make_truth
+    from .baselines import propagate
+    from .case import prepare_case
+    from .fem_cases import peak_frame
+    from .organs import baseline_positions, organ_scores
+    from .target_kinds import run_targets
+    from .truth import gt_for_model, make_ground_truth
+
     image, labels = cfg0.image, cfg0.labels
     if labels is None:  # a phantom: its planning image is written for the field run
         image, labels = os.path.join(work, "image.nii.gz"), os.path.join(work, "labels.nii.gz")
@@ -224,7 +246,8 @@ def sweep_planes(cases: list[dict], truth_seeds, loads, families=FAMILIES, n_pos
         TruthConfig(loads=tuple(load.split("+")))
     for seed in truth_seeds:
         TruthConfig(seed=int(seed))
-    with CsvAppender(out_csv, PLANE_SWEEP_FIELDS) as out:
+    with CsvAppender(out_csv, PLANE_SWEEP_FIELDS, ("case", "truth_seed", "load", "family", "planes"), "plane-sweep CSV",
+                     "resume a CSV of `warpmpm sweep-planes`, or name a new --out") as out:
         rows = read_rows(out_csv)
         done = frozenset(_row_key(r) for r in rows)
         args = [(c, int(s), load, tuple(families), int(n_positions), done, truth_cell_mm, int(particle_step)) for c in cases

@@ -117,7 +117,8 @@ def sweep(cases: list[dict], deformations, combinations, orientations=("axial",)
     base = base or CaseConfig()
     for d in deformations:  # every deformation is checked before any task starts
         replace(base, protocol=protocol, deformation=int(d))
-    with CsvAppender(out_csv, SWEEP_FIELDS) as out:
+    with CsvAppender(out_csv, SWEEP_FIELDS, ("case", "protocol", "deformation", "organs", "orientation", "slice"), "sweep CSV",
+                     "resume a CSV of `warpmpm sweep`, or name a new --out") as out:
         rows = read_rows(out_csv)
         done = frozenset(_row_key(r) for r in rows)
         args = [(c, int(d), tuple(combinations), tuple(orientations), protocol, slice_stride, base, done) for c in cases for d in deformations]

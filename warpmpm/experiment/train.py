@@ -20,7 +20,6 @@ on the held-out cases (top-1 pick, and best of the top 3 as the paper's plane ru
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 
@@ -48,12 +47,14 @@ def selection_time_ms(model, repeats: int = 200) -> dict:
 
 def train(a) -> int:
     """Run ``warpmpm train`` with its parsed options ``a`` (see :func:`warpmpm.cli.build_parser`)."""
+    from .io import check_output_path, read_csv
+
     rows = []
     for path in a.csv:
-        if not os.path.exists(path):
-            raise InputError(f"sweep CSV {path} not found")
-        with open(path) as f:
-            rows += list(csv.DictReader(f))
+        rows += read_csv(path, "sweep CSV", ("case", "organs", "orientation", "slice"), "make one with `warpmpm sweep`")
+    for out_path, option in ((a.out, "--out"), (a.report, "--report")):
+        if out_path:
+            check_output_path(out_path, option, inputs=[("CSV", p) for p in a.csv])
     orientations = tuple(a.orientations.split(",")) if a.orientations else (
         ("sagittal", "coronal") if a.target == "dice_rank" else ("axial",))
     table = TrainingTable.from_sweep(rows, a.target, orientations=orientations)

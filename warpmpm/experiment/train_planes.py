@@ -20,8 +20,6 @@ pancreas and its organs at risk (the model then ranks by the mean predicted frac
 
 from __future__ import annotations
 
-import csv
-import gzip
 import json
 import os
 
@@ -39,16 +37,11 @@ OBJECTIVES = {"pancreas": ("pancreas",), "all_organs": tuple(ORGANS)}
 
 
 def read_sweep_rows(paths) -> list[dict]:
+    from .io import read_csv
+
     rows = []
     for path in paths:
-        if not os.path.exists(path):
-            raise InputError(f"plane-sweep CSV {path} not found; make one with `warpmpm sweep-planes`")
-        opener = gzip.open if path.endswith(".gz") else open
-        with opener(path, "rt", newline="") as f:
-            part = list(csv.DictReader(f))
-        if part and "family" not in part[0]:
-            raise InputError(f"{path} is not a plane-sweep CSV (no 'family' column); make one with `warpmpm sweep-planes`")
-        rows += part
+        rows += read_csv(path, "plane-sweep CSV", ("case", "family", "planes"), "make one with `warpmpm sweep-planes`")
     return rows
 
 

@@ -81,6 +81,26 @@ class AbdomenModel:
         self.held = back | bone
         top_index = mesh.n_cells[si_ax] if si_sign > 0 else 0
         self.diaphragm = (nodes_ijk[:, si_ax] == top_index) & ~self.held
+        self.diaphragm_from = "the box's superior face"
+        if not self.diaphragm.any() and ("breathing" in cfg.loads or "drift" in cfg.loads):
+            # no tissue reaches the box's superior face (a scan cut just above the organs): the body's own superior
+            # surface is moved instead, the most superior node of each superior-inferior column
+            sup = si_sign * local[:, si_ax]
+            col = nodes_ijk[:, lat_ax] * (mesh.node_shape[::-1][ap_ax] + 1) + nodes_ijk[:, ap_ax]
+            order = np.lexsort((-sup, col))
+            top = np.ones(len(order), bool)
+            top[1:] = col[order][1:] != col[order][:-1]
+            self.diaphragm = np.zeros(len(local), bool)
+            self.diaphragm[order[top]] = True
+            self.diaphragm &= ~self.held
+            self.diaphragm_from = "the body's superior surface (no tissue reaches the scan's top above the organs)"
+            import warnings
+
+            from ..errors import InputWarning
+
+            warnings.warn("breathing: the scan has no tissue at its top above the organs; the diaphragm's motion is put on "
+                          "the body's own superior surface instead (the truth is less like a breathing abdomen there)",
+                          InputWarning, stacklevel=2)
         tp = cfg.posterior_taper_mm
         x = np.clip(col_back / tp, 0.0, 1.0) if tp > 0 else np.ones(len(local))
         self.taper = x * x * (3 - 2 * x)
@@ -201,7 +221,7 @@ def make_truth(case: Case, preset: str | None, cfg: TruthConfig, progress=None) 
         "materials": mesh.materials,
         "mesh": {"cell_mm": mesh.h_mm.tolist(), "n_cells": list(mesh.n_cells), "n_elements": int(mesh.keep.sum()),
                  "n_nodes": int(len(model.active)), "n_unknowns": int(3 * len(model.active)),
-                 "held_nodes": int(model.held.sum()), "diaphragm_nodes": int(model.diaphragm.sum()),
+                 "held_nodes": int(model.held.sum()), "diaphragm_nodes": int(model.diaphragm.sum()), "diaphragm_from": model.diaphragm_from,
                  "box_corners_mm": corners.tolist(), "cells_per_tissue": counts, "build_s": model.build_s},
         "frames": frames,
     }
