@@ -48,6 +48,7 @@ def main(argv=None):
     p.add_argument("--device", default=None)
     a = p.parse_args(argv)
     from warpmpm.dicom_rt import write_rtdose, write_rtstruct, write_series
+    from warpmpm.experiment.cine_series import same_session
     from warpmpm.images import load_case
 
     cine = os.path.join(a.out, "cine")
@@ -60,6 +61,7 @@ def main(argv=None):
     write_rtstruct(os.path.join(clinic, "RS.dcm"), ref, {o: case.labels == v for o, v in case.label_map.items()}, ROI_NAMES,
                    label="plan")
     write_rtdose(os.path.join(clinic, "RD.dcm"), ref, plan_dose(case))
+    same_session(os.path.join(cine, "cine"), ref)  # the cine of the planning MR's session: its frame of reference, patient
     track = os.path.join(a.out, "track")
     args = ["track", "--image", os.path.join(clinic, "planning"), "--rtstruct", os.path.join(clinic, "RS.dcm"), "--cine",
             os.path.join(cine, "cine"), "--out", track, "--dicom", "--dose", os.path.join(clinic, "RD.dcm"), "--overwrite"]

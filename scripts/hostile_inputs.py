@@ -1,13 +1,14 @@
 """Try hostile and careless inputs against the command line, as a new user would, and count the outcomes.
 
     python scripts/hostile_inputs.py [--out hostile.md]
+    python scripts/hostile_inputs.py --clinic     # the clinic's broken files: cine, planning series, RTSTRUCT, RT Dose, CSVs
 
 Each case runs ``warpmpm`` (or a Python snippet) in a fresh process on the tiny phantom (or on broken copies
 of it) and is classified:
 
 - ``clear error``: exit code 2 or 3, one ``error:`` / ``simulation error:`` line, no traceback, nothing written;
 - ``handled``: exit code 0 with the reason on stderr (a ``warning:`` line), or the expected refusal;
-- ``crash``: a traceback; ``silent``: exit 0 where an error or a warning was expected; ``partial output``:
+- ``crash``: a traceback (or an ``internal error:`` line: an error warpmpm did not foresee); ``silent``: exit 0 where an error or a warning was expected; ``partial output``:
   an output file left behind by a failed run.
 """
 
@@ -255,11 +256,10 @@ def make_clinic_files(d):
     dose = np.where(masks["pancreas"], 50.0, 10.0)
     write_rtdose(f"{c}/RD.dcm", ref, dose)
 
-    def same_session(ds, k):  # the cine of the planning session: its frame of reference and patient
-        ds.FrameOfReferenceUID = ref.frame_of_reference_uid
-        ds.PatientID = ref.patient_id
+    from warpmpm.experiment.cine_series import same_session
 
-    _copy_folder(f"{c}/made/cine", f"{c}/cine", same_session)
+    _copy_folder(f"{c}/made/cine", f"{c}/cine")
+    same_session(f"{c}/cine", ref)  # the cine of the planning session: its frame of reference and patient
     shutil.rmtree(f"{c}/made/truth")
     first = sorted(os.listdir(f"{c}/cine"))
     # cine
@@ -467,15 +467,26 @@ def classify(proc, expected, outputs_before, d, api=False):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default=None, help="write the table here (Markdown)")
+    p.add_argument("--clinic", action="store_true", help="the clinic's broken files instead (issue 51), run in this process")
     a = p.parse_args(argv)
     exe = os.path.join(os.path.dirname(sys.executable), "warpmpm")
     with tempfile.TemporaryDirectory() as d:
-        make_files(d)
+        import types
+
+        if a.clinic:
+            make_clinic_files(d)
+        else:
+            make_files(d)
         rows, counts = [], {}
-        for name, argv_, expected in cases(d):
-            cmd = [exe] + argv_[1:] if argv_[0] == "warpmpm" else [sys.executable] + argv_[1:]
+        for name, argv_, expected in (clinic_cases(d) if a.clinic else cases(d)):
             before = set(os.listdir(d))
-            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=d, timeout=600, env=dict(os.environ, PYTHONPATH=ROOT))
+            if a.clinic:
+                code, err = run_in_process(argv_[1:])
+                proc = types.SimpleNamespace(returncode=code, stderr=err)
+            else:
+                cmd = [exe] + argv_[1:] if argv_[0] == "warpmpm" else [sys.executable] + argv_[1:]
+                proc = subprocess.run(cmd, capture_output=True, text=True, cwd=d, timeout=600,
+                                      env=dict(os.environ, PYTHONPATH=ROOT))
             outcome = classify(proc, expected, before, d, api=argv_[0] == "python")
             counts[outcome] = counts.get(outcome, 0) + 1
             lines = proc.stderr.strip().splitlines() or [""]

@@ -19,6 +19,7 @@ from warpmpm.cli import main
 from warpmpm.dicom_rt import (find_structures, read_registration, read_rtstruct, write_registration, write_rtdose, write_rtstruct,
                               write_series)
 from warpmpm.errors import InputError
+from warpmpm.experiment.cine_series import same_session
 from warpmpm.images import load_case
 
 ORGAN_ROIS = {"pancreas": "Pancreas", "stomach": "Stomach", "duodenum": "Duodenum", "left_kidney": "Kidney_L"}
@@ -159,6 +160,7 @@ def tracked(tmp_path_factory, planning):
     case = load_case(os.path.join(series, "planning", "labels.nii.gz"), os.path.join(series, "planning", "image.nii.gz"))
     plan = tmp_path_factory.mktemp("clinic")
     pref = write_series(case.intensity_image(), str(plan / "series"), "MR")
+    same_session(os.path.join(series, "cine"), pref)
     write_rtstruct(str(plan / "RS.dcm"), pref, {o: case.labels == v for o, v in case.label_map.items()}, ORGAN_ROIS)
     write_rtdose(str(plan / "RD.dcm"), pref, plan_dose(case))
     with open(plan / "beam.csv", "w") as f:

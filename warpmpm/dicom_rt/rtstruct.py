@@ -157,8 +157,8 @@ def read_rtstruct(path: str, geometry: Geometry, frame_of_reference_uid: str | N
         try:
             number = int(rc.ReferencedROINumber)
         except (AttributeError, TypeError, ValueError):
-            raise InputError(f"the structure set {path} has a contour sequence without a valid ReferencedROINumber; export "
-                             "it again from the planning system") from None
+            raise InputError(f"the structure set {path} has a contour sequence without a valid ReferencedROINumber (is the "
+                             "file cut short?); export it again from the planning system") from None
         name = names.get(number, f"ROI {number}")
         if rois is not None and name not in rois:
             continue

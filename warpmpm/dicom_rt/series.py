@@ -117,7 +117,8 @@ def series_headers(folder: str) -> list:
         if "PixelData" in ds or "ImagePositionPatient" in ds or "Rows" in ds:
             slices.append(ds)
     if not slices:
-        raise InputError(f"no DICOM images in {folder}" + (f" ({seen} other DICOM files)" if seen else ""))
+        raise InputError(f"no DICOM series in {folder}: no DICOM image" + (f" ({seen} other DICOM files)" if seen else "")
+                         + "; give the folder of the planning series' slices")
     series = {str(s.get("SeriesInstanceUID", "")) for s in slices}
     if len(series) > 1:
         raise InputError(f"{folder} holds {len(series)} DICOM series; keep the planning series alone in its folder")

@@ -31,7 +31,7 @@ from ..metrics import dice, voxelize
 from ..model import build_model
 from ..slices import orientation_image_axis
 
-__all__ = ["MAX_FRAMES", "BREATHING_MM", "check_cine_parameters", "make_cine", "slab_average", "evaluate_track",
+__all__ = ["MAX_FRAMES", "BREATHING_MM", "check_cine_parameters", "make_cine", "same_session", "slab_average", "evaluate_track",
            "plot_track_errors"]
 
 #: Most frames a synthetic series may hold (10 minutes at 10 frames/s).
@@ -157,6 +157,22 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
     with open(os.path.join(truth, "series.json"), "w") as f:
         json.dump(params, f, indent=1)
     return params
+
+
+def same_session(cine_folder: str, ref) -> None:
+    """Give a synthetic DICOM cine (``make-cine``) the frame of reference and patient ID of the planning series ``ref``
+    (a :class:`warpmpm.dicom_rt.SeriesReference`) written from the same planning image afterwards, as the cine of the
+    session a planning MR was taken in carries them: the tracker refuses a cine of another frame of reference or
+    patient. For synthetic series only; a clinic's cine keeps what the scanner wrote."""
+    import pydicom
+
+    for name in sorted(os.listdir(cine_folder)):
+        if not name.lower().endswith(".dcm"):
+            continue
+        path = os.path.join(cine_folder, name)
+        ds = pydicom.dcmread(path)
+        ds.FrameOfReferenceUID, ds.PatientID = ref.frame_of_reference_uid, ref.patient_id
+        ds.save_as(path)
 
 
 def _write_dicom_frame(frame: sitk.Image, path: str, k: int, t: float, thickness_mm: float, planning: np.ndarray,
