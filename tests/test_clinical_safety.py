@@ -337,3 +337,38 @@ def test_resuming_a_finished_plane_sweep_makes_no_truth_and_leaves_no_temp_folde
     capsys.readouterr()
     assert main(args) == 130
     assert f"the {n} rows finished so far are kept in {out}" in capsys.readouterr().err
+
+
+def test_fuzzed_vendor_cine_frames_give_input_errors_never_anything_else(tmp_path):
+    """The real Elekta Unity `.bin` and DICOM frames of ../shared/data, cut at random and with random bytes overwritten
+    (80 each): the frame reader reads them or refuses them with InputError."""
+    from conftest import DATA
+
+    from warpmpm.cine import read_frame
+
+    folder = os.path.join(DATA, "unity_cine")
+    if not os.path.isdir(folder):
+        pytest.skip(f"the vendor cine frames are not in {folder} (../shared/data): nothing to fuzz")
+    rng = np.random.default_rng(11)
+    crashes = []
+    for name in sorted(os.listdir(folder)):
+        data = open(os.path.join(folder, name), "rb").read()
+        for trial in range(80):
+            b = bytearray(data)
+            if trial % 2:
+                b = b[: int(rng.integers(1, len(b)))]
+            else:
+                for _ in range(int(rng.integers(1, 8))):
+                    b[int(rng.integers(len(b)))] = int(rng.integers(256))
+            p = tmp_path / f"{trial}_{name}"
+            p.write_bytes(bytes(b))
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    read_frame(str(p))
+            except InputError:
+                pass
+            except Exception as exc:  # noqa: BLE001
+                crashes.append((name, trial, f"{type(exc).__name__}: {exc}"[:200]))
+            p.unlink()
+    assert not crashes, crashes

@@ -322,7 +322,8 @@ def read_cine(folder: str) -> list[CineFrame]:
     thick, mixed sizes within one plane, or a folder that mixes kinds of file.
     """
     if not os.path.isdir(folder):
-        raise InputError(f"cine folder not found: {folder}")
+        raise InputError(f"cine folder {folder} " + ("is a file; give the folder that holds the frames" if os.path.exists(folder)
+                                                     else "not found"))
     paths = sorted(os.path.join(folder, f) for f in os.listdir(folder) if f.lower().endswith(IMAGE_SUFFIXES))
     if not paths:
         raise InputError(f"no cine frames (Unity .bin, DICOM, NIfTI, MHA or NRRD files) in {folder}")

@@ -50,8 +50,9 @@ def read_field(path: str, geometry: Geometry, organ_mask: np.ndarray | None = No
     origin or direction), another number of components, non-finite values. A fold (Jacobian determinant of
     ``x + u(x)`` at or below zero) inside ``organ_mask`` is an :class:`InputWarning` naming how many voxels fold.
     """
-    if not os.path.exists(path):
-        raise InputError(f"truth field not found: {path}")
+    from .errors import check_input_file
+
+    check_input_file(path, "truth field", "give a displacement field (a 3-component NIfTI/MHA on the planning grid)")
     check_file_integrity(path)
     try:
         img = sitk.ReadImage(path)

@@ -103,7 +103,8 @@ def series_headers(folder: str) -> list:
     import pydicom
 
     if not os.path.isdir(folder):
-        raise InputError(f"DICOM series folder not found: {folder}")
+        raise InputError(f"DICOM series folder {folder} " + ("is a file; give the folder of the series' slices"
+                                                             if os.path.exists(folder) else "not found"))
     slices, seen = [], 0
     for name in sorted(os.listdir(folder)):
         p = os.path.join(folder, name)

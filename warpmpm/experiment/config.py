@@ -136,6 +136,9 @@ class CaseConfig:
             path = getattr(self, name)
             if path is not None and not os.path.exists(path):
                 raise InputError(f"--{name} file not found: {path}")
+            if path is not None and not (os.path.isfile(path) or os.path.isdir(path)):
+                raise InputError(f"--{name} {path} is not a regular file (a device or a pipe?); give an image file or a "
+                                 "DICOM series folder")
         if isinstance(self.preset, str) and self.preset not in PRESETS:
             raise InputError(f"unknown label preset {self.preset!r}; choose one of {sorted(PRESETS)}")
         if not _is_int(self.phantom_seed) or not (0 <= self.phantom_seed <= MAX_SEED):
