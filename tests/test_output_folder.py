@@ -119,3 +119,31 @@ def test_an_interrupted_writer_leaves_the_old_result(tmp_path):
             raise RuntimeError("killed mid-way")
     assert (out / "a.txt").read_text() == "first"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["truth"]
+
+
+def test_the_record_says_what_made_the_folder_from_what(series, tmp_path):
+    """warpmpm-output.json: kind, version, the arguments, each input's sha256 (a folder's over its files), the machine,
+    the run's time and its warnings, which still reach the user (and a recording catch_warnings)."""
+    import hashlib
+    import json
+    import warnings
+
+    from warpmpm.errors import InputWarning
+    from warpmpm.output_folder import sha256_of
+
+    out = tmp_path / "track"
+    assert main(_track(series, out)) == 0
+    rec = json.loads((out / RECORD).read_text())
+    assert rec["kind"] == "track" and rec["written_by"].startswith("warpmpm ") and rec["arguments"]["out"] == str(out)
+    labels = os.path.join(series, "planning", "labels.nii.gz")
+    got = {i["option"]: i for i in rec["inputs"]}
+    assert got["--labels"]["sha256"] == hashlib.sha256(open(labels, "rb").read()).hexdigest()
+    assert got["--cine"]["sha256"] == sha256_of(os.path.join(series, "cine")) and len(got["--cine"]["sha256"]) == 64
+    assert rec["machine"]["cpus"] >= 1 and rec["wall_s"] > 0
+    folder = OutputFolder(str(tmp_path / "w"), kind="truth")
+    with pytest.warns(InputWarning, match="a named warning"):
+        with folder as work:
+            with open(os.path.join(work, "a"), "w") as fh:
+                fh.write("x")
+            warnings.warn("a named warning", InputWarning)
+    assert json.loads((tmp_path / "w" / RECORD).read_text())["warnings"] == ["a named warning"]

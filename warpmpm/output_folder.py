@@ -32,8 +32,10 @@ from .errors import InputError
 __all__ = ["RECORD", "OutputFolder", "check_not_an_input", "remove_dead_work_folders"]
 
 RECORD = "warpmpm-output.json"
-"""The record file in every output folder this tool writes: ``{"kind": ..., "version": ..., "created": ...}``.
-``--overwrite`` replaces a folder only when it holds this file."""
+"""The record file in every output folder this tool writes: what it is (``kind``), what wrote it (``written_by``,
+``commit`` where the package runs from a git checkout), when (``created``, ``wall_s``), from what (``inputs``: each
+input's option, path and sha256; a folder's over its files' names and bytes), where (``machine``), with which
+arguments, and every warning the run gave. ``--overwrite`` replaces a folder only when it holds this file."""
 
 WORK_PREFIX = ".warpmpm-work-"
 
@@ -97,6 +99,50 @@ def remove_dead_work_folders(parent: str) -> None:
         print(f"removed {path}: the unfinished work of a run that was killed", file=sys.stderr)
 
 
+def sha256_of(path: str) -> str | None:
+    """The sha256 of a file, or of a folder (its files' relative names and bytes, in sorted order); None when unreadable."""
+    import hashlib
+
+    h = hashlib.sha256()
+    try:
+        if os.path.isdir(path):
+            for d, dirs, files in sorted(os.walk(path)):
+                dirs.sort()
+                for f in sorted(files):
+                    h.update(os.path.relpath(os.path.join(d, f), path).encode())
+                    with open(os.path.join(d, f), "rb") as fh:
+                        for chunk in iter(lambda: fh.read(1 << 20), b""):
+                            h.update(chunk)
+        else:
+            with open(path, "rb") as fh:
+                for chunk in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(chunk)
+    except OSError:
+        return None
+    return h.hexdigest()
+
+
+def _commit() -> str | None:
+    """The git commit the package runs from (a checkout), else None."""
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if not os.path.isdir(os.path.join(root, ".git")):
+        return None
+    try:
+        out = subprocess.run(["git", "-C", root, "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return out.stdout.strip() or None if out.returncode == 0 else None
+
+
+def _machine() -> dict:
+    import platform
+
+    return {"system": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
+            "processor": platform.processor() or platform.machine()}
+
+
 class OutputFolder:
     """A result folder written whole or not at all (module docstring).
 
@@ -152,6 +198,10 @@ class OutputFolder:
                                      f"replaces only an earlier {kind}; name a new folder")
                 self._replace = True
         self._take_lock()
+        self.inputs = [(opt, path) for opt, path in inputs if path]
+        self.warnings: list[str] = []
+        self._t0 = time.perf_counter()
+        self._showwarning = None
 
     @staticmethod
     def _read_record(folder: str) -> dict | None:
@@ -202,7 +252,21 @@ class OutputFolder:
             self._lock = None
 
     def __enter__(self) -> str:
+        import warnings
+
         remove_dead_work_folders(self.parent)
+        self._showwarning = warnings.showwarning
+
+        def record(message, category, filename, lineno, file=None, line=None):  # kept for the record, and shown as before
+            if not issubclass(category, (ResourceWarning, DeprecationWarning, PendingDeprecationWarning)):
+                self.warnings.append(str(message))  # what the user was told, not the developers' notices
+            if self._showwarning is getattr(warnings, "_showwarning_orig", None) and hasattr(warnings, "_showwarnmsg_impl"):
+                # the standard hook: hand the warning on as `warnings` itself would (a recording catch_warnings included)
+                warnings._showwarnmsg_impl(warnings.WarningMessage(message, category, filename, lineno, file, line))
+            else:
+                self._showwarning(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = record
         try:
             self.work = tempfile.mkdtemp(prefix=f"{WORK_PREFIX}{self.kind}-", dir=self.parent)
             with open(os.path.join(self.work, "pid"), "w") as fh:  # whose it is: a later run removes it if this one was killed
@@ -214,10 +278,15 @@ class OutputFolder:
         return self.work
 
     def __exit__(self, exc_type, exc, tb) -> bool:
+        import warnings
+
         try:
             if exc_type is None:
                 self._commit()
         finally:
+            if self._showwarning is not None:
+                warnings.showwarning = self._showwarning
+                self._showwarning = None
             self.release()
         return False
 
@@ -225,8 +294,10 @@ class OutputFolder:
         from . import __version__
 
         os.remove(os.path.join(self.work, "pid"))
-        rec = {"kind": self.kind, "written_by": f"warpmpm {__version__}",
-               "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **self.record}
+        rec = {"kind": self.kind, "written_by": f"warpmpm {__version__}", "commit": _commit(),
+               "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_s": round(time.perf_counter() - self._t0, 3),
+               "inputs": [{"option": opt, "path": os.path.abspath(p), "sha256": sha256_of(p)} for opt, p in self.inputs],
+               "machine": _machine(), **self.record, "warnings": list(self.warnings)}
         with open(os.path.join(self.work, RECORD), "w") as fh:
             json.dump(rec, fh, indent=1)
         if os.path.lexists(self.out):

@@ -36,9 +36,10 @@ def cmd_run(a) -> int:
     from ..experiment.tables import format_table
 
     cfg = config_from_args(a)
+    inputs = [("--labels", a.labels), ("--image", a.image), ("--truth-field", getattr(a, "truth_field", None))]
     for path, option in ((a.json, "--json"), (a.rrd, "--rrd")):
         if path:
-            check_output_path(path, option)
+            check_output_path(path, option, inputs)
     selection = None
     if cfg.is_auto:
         organs, slices, selection = auto_condition(cfg, a.selector, a.plane_selector)

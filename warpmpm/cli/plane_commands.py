@@ -102,7 +102,8 @@ def cmd_plan_planes(a) -> int:
         raise InputError(f"--motion-mm is the organs' expected motion in mm (0-100), got {a.motion_mm}")
     for path, option in ((a.json, "--json"), (a.picture, "--picture")):
         if path:
-            check_output_path(path, option)
+            check_output_path(path, option, [("--image", a.image), ("--labels", a.labels), ("--rtstruct", getattr(a, "rtstruct", None)),
+                                              ("--model", a.model)])
     if a.method == "simulate":
         return _simulate(a, families, rank_by)
     placement_model = PlacementModel.load(a.model or DEFAULT_PLACEMENT_MODEL)
