@@ -372,3 +372,15 @@ def test_fuzzed_vendor_cine_frames_give_input_errors_never_anything_else(tmp_pat
                 crashes.append((name, trial, f"{type(exc).__name__}: {exc}"[:200]))
             p.unlink()
     assert not crashes, crashes
+
+
+def test_a_gpu_is_named_by_its_number_and_nothing_else_is_taken_for_a_device(capsys):
+    """Issue 53: `--device cuda:1` was refused by the command line; `--device gpu` must stay one clear line."""
+    from warpmpm.cli import build_parser
+
+    base = ["track", "--image", "i", "--labels", "l", "--cine", "c", "--out", "o"]
+    assert build_parser().parse_args([*base, "--device", "cuda:1"]).device == "cuda:1"
+    assert build_parser().parse_args([*base, "--device", "cpu"]).device == "cpu"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args([*base, "--device", "gpu"])
+    assert "use cpu, cuda or cuda:N" in capsys.readouterr().err

@@ -49,10 +49,20 @@ def _case_options() -> argparse.ArgumentParser:
     return p
 
 
+def _device(text: str) -> str:
+    """``--device``: ``cpu``, ``cuda`` or ``cuda:N`` (argparse refuses anything else in one line)."""
+    import re
+
+    if text in ("cpu", "cuda") or re.fullmatch(r"cuda:\d{1,2}", text):
+        return text
+    raise argparse.ArgumentTypeError(f"{text!r}: use cpu, cuda or cuda:N (N the GPU's number, e.g. cuda:1)")
+
+
 def _device_options() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(add_help=False)
     g = p.add_argument_group("device and console")
-    g.add_argument("--device", default=None, choices=["cpu", "cuda"], help="Warp device (default: CUDA when available)")
+    g.add_argument("--device", default=None, type=_device, metavar="{cpu,cuda,cuda:N}",
+                   help="Warp device: cpu, cuda (the first GPU) or cuda:N (GPU N); default: CUDA when available")
     g.add_argument("--verbose", action="store_true", help="show Warp's and ITK's own messages (module loads, warnings)")
     return p
 

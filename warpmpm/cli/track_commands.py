@@ -141,6 +141,9 @@ def _arguments(a) -> dict:
 
 def cmd_track(a) -> int:
     from ..cine import read_cine
+    from ..experiment.run import check_device
+
+    check_device(a.device)
 
     bad = sorted(set(a.organs) - set("psdl"))
     if bad or not a.organs:

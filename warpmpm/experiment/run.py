@@ -181,7 +181,11 @@ def check_device(device: str | None) -> None:
 
         wp.init()
         if not wp.is_cuda_available():
-            raise InputError("--device cuda asked for, but no CUDA device is available")
+            raise InputError(f"--device {device} asked for, but no CUDA device is available; use --device cpu")
+        if ":" in str(device):
+            n = int(str(device).split(":")[1])
+            if n >= wp.get_cuda_device_count():
+                raise InputError(f"--device {device}: there are {wp.get_cuda_device_count()} CUDA device(s), numbered from 0")
 
 
 class Progress:
