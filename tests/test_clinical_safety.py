@@ -384,3 +384,22 @@ def test_a_gpu_is_named_by_its_number_and_nothing_else_is_taken_for_a_device(cap
     with pytest.raises(SystemExit):
         build_parser().parse_args([*base, "--device", "gpu"])
     assert "use cpu, cuda or cuda:N" in capsys.readouterr().err
+
+
+def test_every_json_written_is_strict_json_with_the_reason_for_each_null(tmp_path):
+    """Issue 53, item 4: undefined figures were written as NaN, which strict readers refuse. Now null with the reason."""
+    import json
+
+    from warpmpm.errors import strict_json
+    from warpmpm.experiment.io import write_json_atomic
+
+    doc = {"error_mm": float("nan"), "p95": np.float32(np.inf), "ok": np.float64(1.5), "rows": [1.0, float("nan")],
+           "nested": {"dice": np.nan, "n": np.int64(3)}, "arr": np.array([0.5, np.nan])}
+    write_json_atomic(str(tmp_path / "a.json"), doc)
+    text = (tmp_path / "a.json").read_text()
+    back = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in a strict JSON file"))
+    assert back["error_mm"] is None and "undefined" in back["error_mm_null_reason"]
+    assert back["p95"] is None and back["p95_null_reason"] == "infinite" and back["ok"] == 1.5
+    assert back["rows"] == [1.0, None] and back["arr"] == [0.5, None]
+    assert back["nested"] == {"dice": None, "dice_null_reason": "not a number: undefined for this run", "n": 3}
+    assert strict_json(float("nan")) is None

@@ -6,7 +6,7 @@
   grid). The CLI prints one ``simulation error:`` line and exits with code 3.
 """
 
-__all__ = ["InputError", "InputWarning", "SimulationError", "check_input_file"]
+__all__ = ["InputError", "InputWarning", "SimulationError", "check_input_file", "strict_json"]
 
 
 class InputError(ValueError):
@@ -33,3 +33,48 @@ def check_input_file(path, what: str, fix: str = "") -> None:
         raise InputError(f"{what} {path} is {kind}; give the file itself{hint}")
     if os.path.getsize(path) == 0:
         raise InputError(f"{what} {path} is empty (0 bytes){hint}")
+
+
+def strict_json(obj):
+    """``obj`` made strict JSON (RFC 8259 has no NaN or Infinity, and strict readers refuse them): every non-finite
+    number becomes null, and a dict holding one gains ``"<key>_null_reason"`` beside it ("not a number: undefined
+    here", "infinite"). numpy scalars and arrays become plain numbers and lists; objects with ``to_json()`` their
+    dict; anything else its string."""
+    import math
+
+    def why(x: float) -> str:
+        return "not a number: undefined for this run" if math.isnan(x) else "infinite"
+
+    def conv(o):
+        if hasattr(o, "to_json") and not isinstance(o, type):
+            return conv(o.to_json())
+        if isinstance(o, dict):
+            out = {}
+            for k, v in o.items():
+                v = conv(v)
+                key = str(k)
+                if isinstance(v, _Undefined):
+                    out[key] = None
+                    out[f"{key}_null_reason"] = v.reason
+                else:
+                    out[key] = v
+            return out
+        if isinstance(o, (list, tuple)):
+            return [None if isinstance(v, _Undefined) else v for v in (conv(x) for x in o)]
+        if hasattr(o, "tolist") and hasattr(o, "dtype"):  # numpy arrays and scalars
+            return conv(o.tolist())
+        if isinstance(o, bool) or o is None or isinstance(o, (int, str)):
+            return o
+        if isinstance(o, float):
+            return o if math.isfinite(o) else _Undefined(why(o))
+        return str(o)
+
+    out = conv(obj)
+    return None if isinstance(out, _Undefined) else out
+
+
+class _Undefined:
+    """A non-finite number on its way to null (:func:`strict_json`)."""
+
+    def __init__(self, reason: str):
+        self.reason = reason

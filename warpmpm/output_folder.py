@@ -27,7 +27,7 @@ import tempfile
 import time
 from collections.abc import Iterable
 
-from .errors import InputError
+from .errors import InputError, strict_json
 
 __all__ = ["RECORD", "OutputFolder", "check_not_an_input", "remove_dead_work_folders"]
 
@@ -299,7 +299,7 @@ class OutputFolder:
                "inputs": [{"option": opt, "path": os.path.abspath(p), "sha256": sha256_of(p)} for opt, p in self.inputs],
                "machine": _machine(), **self.record, "warnings": list(self.warnings)}
         with open(os.path.join(self.work, RECORD), "w") as fh:
-            json.dump(rec, fh, indent=1)
+            json.dump(strict_json(rec), fh, indent=1, allow_nan=False)
         if os.path.lexists(self.out):
             if os.path.islink(self.out) or not os.path.isdir(self.out):
                 raise InputError(f"{self.option} {self.given} appeared while this run wrote it; the result was not "

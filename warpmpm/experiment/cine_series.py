@@ -23,7 +23,7 @@ import os
 import numpy as np
 import SimpleITK as sitk
 
-from ..errors import InputError
+from ..errors import InputError, strict_json
 from ..groundtruth import perturb_materials, simulate_gt
 from ..imaging import warp_image
 from ..images import ORGANS, Case, Geometry
@@ -155,7 +155,7 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
         params = {k: v for k, v in params.items() if k not in ("push_mm", "pusher", "breathing_mm", "cycle_amplitude", "materials")}
         params["truth_fields"] = [os.path.abspath(p) for p in truth_fields]
     with open(os.path.join(truth, "series.json"), "w") as f:
-        json.dump(params, f, indent=1)
+        json.dump(strict_json(params), f, indent=1, allow_nan=False)
     return params
 
 

@@ -9,7 +9,6 @@ import os
 import sys
 import tempfile
 
-import numpy as np
 
 from ..errors import InputError
 
@@ -41,25 +40,18 @@ def check_output_path(path: str, option: str, inputs=()) -> str:
     return path
 
 
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer, np.bool_)):
-        return o.item()
-    if hasattr(o, "to_json"):
-        return o.to_json()
-    return str(o)
-
-
 def write_json_atomic(path: str, data) -> None:
     """Write JSON (a dict or anything with ``to_json()``) through a temporary file and a rename."""
+    from ..errors import strict_json
+
     path = check_output_path(path, "the JSON output")
     if hasattr(data, "to_json"):
         data = data.to_json()
+    data = strict_json(data)  # NaN and Infinity as null with the reason beside them: strict readers accept it
     fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path), suffix=".tmp")
     try:
         with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2, default=_json_default)
+            json.dump(data, f, indent=2, allow_nan=False)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

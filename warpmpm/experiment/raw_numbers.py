@@ -16,6 +16,8 @@ import platform
 import re
 import sys
 
+from ..errors import strict_json
+
 __all__ = ["machine", "check_name", "results_path", "save", "load"]
 
 
@@ -79,7 +81,7 @@ def save(script: str, data, run: str = "default", quiet: bool = False) -> str:
     os.makedirs(os.path.dirname(path), exist_ok=True)
     tmp = path + ".part"
     with open(tmp, "w") as f:
-        json.dump(doc, f, indent=1, default=_default)
+        json.dump(strict_json(json.loads(json.dumps(doc, default=_default))), f, indent=1, allow_nan=False)
     os.replace(tmp, path)
     if not quiet:
         print(f"raw numbers: {os.path.relpath(path)} (run {run!r})")

@@ -25,7 +25,7 @@ import os
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, strict_json
 from ..selection import TrainingTable, baseline_regret, regret, tune_and_train
 
 __all__ = ["selection_time_ms", "train"]
@@ -93,7 +93,7 @@ def train(a) -> int:
     if a.report:
         tmp = a.report + ".part"
         with open(tmp, "w") as f:
-            json.dump(out, f, indent=1, default=str)
+            json.dump(strict_json(out), f, indent=1, allow_nan=False)
         os.replace(tmp, a.report)
     return 0
 

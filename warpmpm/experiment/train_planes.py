@@ -25,7 +25,7 @@ import os
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, strict_json
 from ..images import ORGANS
 from ..plane_placement import FEATURES, PlacementTable, is_rule, placement_regret, train_placement_model
 from ..selection import r2_score
@@ -183,7 +183,7 @@ def train_planes(paths, *, test_cases=None, method: str = "copy", out: str | Non
     if report:
         tmp = report + ".part"
         with open(tmp, "w") as f:
-            json.dump(rep, f, indent=1)
+            json.dump(strict_json(rep), f, indent=1, allow_nan=False)
         os.replace(tmp, report)
     return rep
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..anatomy import TISSUES
 from ..anatomy import TISSUE_CODE as _T
-from ..errors import InputError
+from ..errors import InputError, strict_json
 from ..images import Case, Geometry
 from .config import TruthConfig
 from .elements import CORNERS, ElasticSolver, assemble, reference_matrices
@@ -237,7 +237,7 @@ def write_truth_files(series: TruthSeries, folder: str) -> None:
     for n, f in enumerate(series.fields_mm):
         write_field(f, series.geometry, os.path.join(folder, "fields", f"frame_{n:04d}.nii.gz"))
     with open(os.path.join(folder, "truth.json"), "w") as fh:
-        json.dump(series.record, fh, indent=1)
+        json.dump(strict_json(series.record), fh, indent=1, allow_nan=False)
 
 
 def write_truth(series: TruthSeries, out_dir: str) -> None:
