@@ -48,9 +48,15 @@ def main(argv=None):
     from warpmpm.images import write_case
     from warpmpm.phantom import make_phantom
 
-    if os.path.isdir(a.out):
+    from warpmpm.output_folder import written_by_warpmpm, write_record
+
+    if os.path.lexists(a.out):  # replaced whole, but only when it is an earlier main job: never a folder of the user's
+        if os.path.islink(a.out) or not os.path.isdir(a.out) or (os.listdir(a.out) and not written_by_warpmpm(a.out, "main-job")):
+            raise SystemExit(f"error: --out {a.out} is not an earlier main job of this example (it holds other files, or is "
+                             "a file or a link); name a new folder")
         shutil.rmtree(a.out)
     os.makedirs(os.path.join(a.out, "planning"))
+    write_record(a.out, "main-job", arguments=vars(a))  # an interrupted main job is still recognised as one
     log = os.path.join(a.out, "log.txt")
     image, labels = (os.path.join(a.out, "planning", f) for f in ("image.nii.gz", "labels.nii.gz"))
     case = make_phantom(resolution=a.phantom_resolution)

@@ -147,3 +147,28 @@ def test_the_record_says_what_made_the_folder_from_what(series, tmp_path):
                 fh.write("x")
             warnings.warn("a named warning", InputWarning)
     assert json.loads((tmp_path / "w" / RECORD).read_text())["warnings"] == ["a named warning"]
+
+
+def test_a_track_written_before_records_is_still_replaced_and_the_main_job_never_deletes_a_users_folder(series, tmp_path, capsys):
+    """An older track (track.csv, particles.npz, labels/ and nothing else, no record) is this tool's: --overwrite replaces
+    it. `python examples/run_case.py --out FOLDER` deleted whatever FOLDER was; now only an earlier main job."""
+    import importlib.util
+
+    old = tmp_path / "old_track"
+    (old / "labels").mkdir(parents=True)
+    (old / "track.csv").write_text("frame\n0\n")
+    (old / "particles.npz").write_bytes(b"x")
+    assert main(_track(series, old, "--overwrite")) == 0 and (old / RECORD).exists()
+    (old / RECORD).unlink()
+    (old / "notes.txt").write_text("mine")  # not a track's layout any more
+    assert main(_track(series, old, "--overwrite")) == 2 and "did not write" in capsys.readouterr().err
+    root = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
+    spec = importlib.util.spec_from_file_location("run_case", os.path.join(root, "examples", "run_case.py"))
+    job = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(job)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("a user's notes")
+    with pytest.raises(SystemExit, match="not an earlier main job"):
+        job.main(["--out", str(mine)])
+    assert (mine / "notes.txt").read_text() == "a user's notes"

@@ -29,7 +29,8 @@ from collections.abc import Iterable
 
 from .errors import InputError, strict_json
 
-__all__ = ["RECORD", "OutputFolder", "check_not_an_input", "remove_dead_work_folders"]
+__all__ = ["RECORD", "OutputFolder", "check_not_an_input", "remove_dead_work_folders", "written_by_warpmpm", "write_record",
+           "LEGACY_LAYOUTS"]
 
 RECORD = "warpmpm-output.json"
 """The record file in every output folder this tool writes: what it is (``kind``), what wrote it (``written_by``,
@@ -38,6 +39,38 @@ input's option, path and sha256; a folder's over its files' names and bytes), wh
 arguments, and every warning the run gave. ``--overwrite`` replaces a folder only when it holds this file."""
 
 WORK_PREFIX = ".warpmpm-work-"
+
+#: what a folder of each kind held before the record file existed (2026-12-03 and earlier): a folder holding nothing
+#: else, and the first name listed, is taken as this tool's (so ``--overwrite`` replaces an older track too)
+LEGACY_LAYOUTS = {
+    "track": ("track.csv", "particles.npz", "labels", "displacement", "dicom", "dose"),
+    "main-job": ("log.txt", "planning", "truth", "cine", "track", "track.rrd", "eval.json", "eval.png"),
+}
+
+
+def written_by_warpmpm(folder: str, kind: str) -> bool:
+    """Whether ``folder`` is an output of this tool of ``kind``: its record file says so, or (written before records
+    existed) it holds exactly :data:`LEGACY_LAYOUTS`' names of that kind and the first of them."""
+    rec = OutputFolder._read_record(folder)
+    if rec is not None:
+        return rec.get("kind") == kind
+    layout = LEGACY_LAYOUTS.get(kind)
+    try:
+        names = set(os.listdir(folder))
+    except OSError:
+        return False
+    return bool(layout) and layout[0] in names and names <= set(layout)
+
+
+def write_record(folder: str, kind: str, **fields) -> None:
+    """Write the record file (:data:`RECORD`) of ``kind`` into ``folder`` (what :class:`OutputFolder` writes on commit;
+    for a script that fills a folder step by step)."""
+    from . import __version__
+
+    rec = {"kind": kind, "written_by": f"warpmpm {__version__}", "commit": _commit(),
+           "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": _machine(), **fields}
+    with open(os.path.join(folder, RECORD), "w") as fh:
+        json.dump(strict_json(rec), fh, indent=1, allow_nan=False)
 
 
 def _real(path: str) -> str:
@@ -190,12 +223,12 @@ class OutputFolder:
                     raise InputError(f"{option} {out} already holds files; name a new folder, or add --overwrite to "
                                      f"replace it whole (only an earlier {kind} of this tool's is replaced)")
                 rec = self._read_record(self.out)
-                if rec is None:
-                    raise InputError(f"{option} {out} holds files this tool did not write (no {RECORD}): --overwrite "
-                                     f"replaces only an earlier {kind} of warpmpm's; name a new folder")
-                if rec.get("kind") != kind:
+                if rec is not None and rec.get("kind") != kind:
                     raise InputError(f"{option} {out} holds a warpmpm {rec.get('kind')!r}, not a {kind}: --overwrite "
                                      f"replaces only an earlier {kind}; name a new folder")
+                if not written_by_warpmpm(self.out, kind):
+                    raise InputError(f"{option} {out} holds files this tool did not write (no {RECORD}): --overwrite "
+                                     f"replaces only an earlier {kind} of warpmpm's; name a new folder")
                 self._replace = True
         self._take_lock()
         self.inputs = [(opt, path) for opt, path in inputs if path]
@@ -305,7 +338,7 @@ class OutputFolder:
                 raise InputError(f"{self.option} {self.given} appeared while this run wrote it; the result was not "
                                  "moved there: run again with a new folder")
             if os.listdir(self.out):
-                if not self._replace or self._read_record(self.out) is None:
+                if not self._replace or not written_by_warpmpm(self.out, self.kind):
                     raise InputError(f"{self.option} {self.given} was filled by someone else while this run wrote it; "
                                      "nothing was replaced: run again with a new folder")
                 old = tempfile.mkdtemp(prefix=f"{WORK_PREFIX}old-", dir=self.parent)
