@@ -44,11 +44,14 @@ def _dicom_number(ds, name: str, path: str, count: int | None = None, positive: 
     try:
         values = [float(x) for x in raw] if count is not None else [float(raw)]
     except (TypeError, ValueError):
-        raise InputError(f"RT Dose {path}: {name} {raw!r} is not a number") from None
+        raise InputError(f"RT Dose {path}: {name} {raw!r} is not a number; export the dose again from the planning "
+                         "system") from None
     if count is not None and len(values) != count:
-        raise InputError(f"RT Dose {path}: {name} holds {len(values)} values, {count} are required")
+        raise InputError(f"RT Dose {path}: {name} holds {len(values)} values, {count} are required; export the dose again "
+                         "from the planning system")
     if not all(np.isfinite(values)) or (positive and not all(v > 0 for v in values)):
-        raise InputError(f"RT Dose {path}: {name} {raw!r} must be finite{' and above zero' if positive else ''}")
+        raise InputError(f"RT Dose {path}: {name} {raw!r} must be finite{' and above zero' if positive else ''}; export "
+                         "the dose again from the planning system")
     return values if count is not None else values[0]
 
 
@@ -118,9 +121,10 @@ def read_dose(path: str, max_gy: float = 120.0) -> sitk.Image:
         img = sitk.Cast(read_volume(path), sitk.sitkFloat32)
     arr = sitk.GetArrayViewFromImage(img)
     if not np.isfinite(arr).all():
-        raise InputError(f"dose {path} holds non-finite values")
+        raise InputError(f"dose {path} holds non-finite values; export the plan's physical dose in Gy again")
     if arr.min() < 0:
-        raise InputError(f"dose {path} holds negative values (down to {float(arr.min()):.3g} Gy); a physical dose is >= 0")
+        raise InputError(f"dose {path} holds negative values (down to {float(arr.min()):.3g} Gy); a physical dose is >= 0: "
+                         "export the plan's physical dose in Gy")
     if arr.max() > max_gy:
         raise InputError(f"dose {path} reaches {float(arr.max()):.4g} Gy, above the plausible {max_gy:g} Gy: is it in cGy "
                          "labelled Gy, or is its DoseGridScaling wrong? Export it in Gy, or raise --max-dose-gy if the plan "

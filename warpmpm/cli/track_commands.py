@@ -73,7 +73,7 @@ def _beam_on(path: str, n_frames: int) -> list[float]:
             raise InputError(f"--beam-on {path}, line {line}: frame {n} is not one of the cine's {n_frames} frames (0-{n_frames - 1})")
         if not (np.isfinite(t) and 0 <= t <= 3600.0):
             raise InputError(f"--beam-on {path}, line {line}: beam_on_s {t} must be a number of seconds in 0..3600 (one "
-                             "frame's beam-on time)")
+                             "frame's beam-on time, in seconds: mend that line)")
         if weights[n] is not None:
             raise InputError(f"--beam-on {path}, line {line}: frame {n} is given twice")
         weights[n] = t

@@ -173,7 +173,8 @@ def read_rtstruct(path: str, geometry: Geometry, frame_of_reference_uid: str | N
             try:
                 data = np.asarray([float(v) for v in c.get("ContourData", [])], dtype=np.float64)
             except (TypeError, ValueError):
-                raise InputError(f"structure {name!r} in {path}: a contour holds a value that is not a number") from None
+                raise InputError(f"structure {name!r} in {path}: a contour holds a value that is not a number; mend it in the "
+                                 "planning system") from None
             if kind == "POINT":
                 continue
             if not np.all(np.isfinite(data)):
