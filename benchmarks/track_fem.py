@@ -85,7 +85,7 @@ def main(argv=None):
                 tracker.run(out)
                 ev = evaluate_track(out, truth)
                 rows.append({"case": name, "planes": planes, "estimator": est, "setup_s": setup,
-                             "completion_setup_s": tracker.completion_setup_s, "frames": len(frames),
+                             "completion_setup_s": tracker.estimator.setup_s, "frames": len(frames),
                              "truth_made_by": "warpmpm.truth_fem (finite elements), breathing + push, seed 0", "eval": ev})
                 raw.save(__file__, rows, run=a.raw, quiet=True)
                 print(table(rows[-1:]).splitlines()[-1], flush=True)

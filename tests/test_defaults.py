@@ -31,6 +31,6 @@ def test_the_trackers_subcommand_takes_trackerconfigs_defaults():
     a = build_parser().parse_args(["track", "--image", "i", "--labels", "l", "--cine", "c", "--out", "o"])
     assert a.max_steps == cfg.max_steps and a.solver == cfg.solver.method and a.registration == cfg.registration
     assert a.linear_prior == cfg.registration_linear_prior and a.reference == cfg.reference and a.organs == cfg.organs
-    assert a.estimator == cfg.estimator == "slice-driven"
+    assert a.estimator == cfg.estimator == "copy"
     assert a.particle_step == cfg.particle_step and (not a.no_predict) == cfg.predict and a.wait_settled == cfg.wait_settled
     assert {f.name for f in dataclasses.fields(cfg)} >= {"max_steps", "registration", "reference", "predict"}

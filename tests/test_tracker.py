@@ -38,7 +38,8 @@ def test_track_without_the_truth_and_evaluate_against_it(series, tmp_path, capsy
         out = str(tmp_path / "track")
         code = main(["track", "--image", os.path.join(series, "planning", "image.nii.gz"), "--labels",
                      os.path.join(series, "planning", "labels.nii.gz"), "--cine", os.path.join(series, "cine"), "--out", out,
-                     "--device", "cpu", "--displacement", "--max-steps", "1500", "--rrd", str(tmp_path / "track.rrd")])
+                     "--device", "cpu", "--displacement", "--max-steps", "1500", "--rrd", str(tmp_path / "track.rrd"),
+                     "--estimator", "slice-driven"])  # the MPM's solve figures in track.csv are checked below
     finally:
         shutil.move(hidden, truth)
     assert code == 0

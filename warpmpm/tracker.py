@@ -38,14 +38,14 @@ import numpy as np
 import SimpleITK as sitk
 
 from .cine import CineFrame
-from .driving import ConvergenceConfig, SliceDrivenEstimator
 from .errors import InputError, InputWarning
 from .images import ORGANS, Case
 from .model import ParticleModel, build_model
 from .registration import BACKENDS, register_slice_organs, slice_metric
 from .imaging import particle_label_map, render_plane, scatter_displacements
+from .estimators import FrameObservation
 from .solvers import SolverConfig
-from .solvers.completion import CompletionConfig, CompletionModel, ReducedCompletion
+from .solvers.completion import CompletionConfig
 
 __all__ = ["TRACK_FIELDS", "TrackerConfig", "TrackedFrame", "Tracker", "displacement_field"]
 
@@ -80,11 +80,13 @@ def _off_scan_message(frame, geometry, organ_distance_mm: np.ndarray, letters: s
 class TrackerConfig:
     """How a series is tracked."""
 
-    estimator: Literal["slice-driven", "completion"] = "slice-driven"
-    """What decides the motion no plane shows (module docstring). ``slice-driven`` (default): the seed's MPM driven at
-    the plane's particles from the frame's predicted motion (:attr:`solver`, :attr:`max_steps`, :attr:`wait_settled`,
-    :attr:`predict` apply to it only); on the finite-element series its estimate equals the copy of the planes' motion
-    on every organ. ``completion``: the whole abdomen's equilibrium driven by the observed motion, set up once for the
+    estimator: str = "copy"
+    """Which registered estimator (:data:`warpmpm.estimators.ESTIMATORS`, ``warpmpm estimators``) turns a frame's observed
+    motion into every particle's position. ``copy`` (default): each organ moved by the in-plane motion the frame shows
+    of it, no physics; the measured best: on the finite-element series the slice-driven MPM's estimate equals it on
+    every organ, for 0.02-0.05 s more a frame. ``slice-driven``: the seed's MPM driven at the plane's particles from the
+    frame's predicted motion (:attr:`solver`, :attr:`max_steps`, :attr:`wait_settled`, :attr:`predict` apply to it
+    only). ``completion``: the whole abdomen's equilibrium driven by the observed motion, set up once for the
     series' planes (:attr:`completion`, 40-90 s on 2 cores); every organ within :attr:`reach_mm` of a plane keeps the
     copy, the others take the equilibrium's motion. Measured on finite-element series (``benchmarks/track_fem.py``) it
     equals the copy on the seen organs and is better on an organ no plane reaches in 1 of 4 cases (CT sample, sagittal +
@@ -161,11 +163,12 @@ class Tracker:
             raise InputError(f"--linear-prior (TrackerConfig.registration_linear_prior) must be a finite number >= 0, got {lp!r}")
         if cfg.reference not in ("estimate", "previous-frame"):
             raise InputError(f"TrackerConfig.reference must be 'estimate' or 'previous-frame', got {cfg.reference!r}")
-        if cfg.estimator not in ("completion", "slice-driven"):
-            raise InputError(f"TrackerConfig.estimator must be 'completion' or 'slice-driven', got {cfg.estimator!r}")
-        if cfg.estimator == "completion" and (cfg.wait_settled or not cfg.predict):
-            raise InputError("--wait-settled and --no-predict set the slice-driven MPM; the completion is solved to its equilibrium "
-                             "from the observed motion every frame: drop them, or add --estimator slice-driven")
+        from .estimators import get_estimator
+
+        estimator_class = get_estimator(cfg.estimator)
+        if cfg.estimator != "slice-driven" and (cfg.wait_settled or not cfg.predict):
+            raise InputError(f"--wait-settled and --no-predict set the slice-driven MPM; the {cfg.estimator} estimator does not "
+                             "use it: drop them, or add --estimator slice-driven")
         if case.image is None:
             raise InputError("tracking needs the planning image (--image): the frames are registered against it, moved by the estimate")
         present = [o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o])]
@@ -186,14 +189,8 @@ class Tracker:
                           "superior-inferior motion is a guess; image a sagittal or coronal plane too", InputWarning, stacklevel=2)
         #: every particle that may lie on a plane during the series (each frame drives those on it now)
         self.driven = np.unique(np.concatenate([c for _, c in candidates.values()]))
-        self.estimator, self.completion, self.completion_setup_s = None, None, 0.0
-        if cfg.estimator == "slice-driven":
-            reach = [m.positions_mm + s * cfg.margin_mm * np.eye(3)[k] for k in range(3) for s in (-0.5, 0.5)]
-            self.estimator = SliceDrivenEstimator(m, driven=self.driven, solver_config=cfg.solver, extra_points_mm=np.vstack(reach),
-                                                  convergence=ConvergenceConfig(max_steps=cfg.max_steps, wait_settled=cfg.wait_settled))
-        else:
-            self.completion = self._set_up_completion(list(candidates.values()))
-        self._positions = m.positions_mm.copy()  # the completion's current estimate
+        #: the estimator (:mod:`warpmpm.estimators`), set up once for the series' planes
+        self.estimator = estimator_class(m, case, list(candidates.values()), self.driven, cfg)
         self.planning_image = case.intensity_image()  # rendered frame after frame: built once
         self.last_frame: dict[int, CineFrame] = {}
         self.labels_now = case.labels.copy()
@@ -206,23 +203,9 @@ class Tracker:
         self.plane_propagated: dict[int, np.ndarray] = {}
         self.plane_labels: dict[int, np.ndarray] = {}
 
-    def _set_up_completion(self, planes: list[tuple[CineFrame, np.ndarray]]) -> ReducedCompletion:
-        """The completion of the series' plane set (each plane's first frame with its candidates: the particles that may
-        lie on it during the series; the directions it measures), its response to each seen organ's motion solved once
-        (:class:`ReducedCompletion`). The candidates, as the frames' targets are chosen: an organ the registration can
-        measure on a frame is a seen organ, even where only its edge lies on the plane at planning."""
-        t0 = time.perf_counter()
-        m, cfg = self.model, self.config
-        idx = [on for _, on in planes]
-        axes = [np.broadcast_to(f.projector, (len(on), 3, 3)) for f, on in planes]
-        cm = CompletionModel(self.case, cfg.preset, m, cfg.completion, device=cfg.solver.device)
-        reduced = ReducedCompletion(cm, np.concatenate(idx), np.concatenate(axes))
-        self.completion_setup_s = time.perf_counter() - t0
-        return reduced
-
     def positions_mm(self) -> np.ndarray:
         """The current estimate: every particle's position (N, 3), mm, world LPS."""
-        return self.estimator.positions_mm() if self.estimator is not None else self._positions.copy()
+        return self.estimator.positions_mm()
 
     def _organ_masks(self, frame: CineFrame, labels: np.ndarray) -> tuple[sitk.Image, dict]:
         """The organs' footprints on ``frame``'s plane in ``labels`` (the reference's content: the current estimate's
@@ -296,35 +279,13 @@ class Tracker:
                              f"(the organs have moved out of it)")
         # the registration moves the reference's content: the estimate now, or the plane when it was last imaged
         seen = observed(x, x if by_estimate else self.plane_positions.get(frame.plane, m.positions_mm))
-        if self.completion is not None:
-            # the baseline on its own: the frame's motion applied to the copy's positions (the estimate and the copy agree
-            # on the seen organs along the directions the planes measure, not elsewhere)
+        if self.estimator.baseline_from_estimate:  # the baseline: the frame's motion from the last estimate
+            self.propagated = seen.copy() if by_estimate else observed(self.propagated, self.plane_propagated.get(frame.plane, m.positions_mm))
+        else:  # the baseline on its own: the frame's motion applied to the copy's positions (the estimate leaves the copy)
             self.propagated = observed(self.propagated, self.propagated if by_estimate else
                                        self.plane_propagated.get(frame.plane, m.positions_mm))
-            # the observation: every particle of a seen organ where the planes' motion puts it, combined over the planes
-            # (this frame's in-plane directions, the others' from the estimate, which keeps them exactly)
-            res = self.completion.complete(seen[self.completion.idx], seen)
-            positions = res.positions_mm
-            self._positions = positions
-            solve = dict(solver="completion", steps=0, linear_iterations=0, converged=True, slice_converged=True, settled=True,
-                         body_motion_mm=0.0, reason=f"equilibrium of the observed motion ({res.info['responses']} precomputed responses)",
-                         wall_s=res.wall_s, rms_residual_mm=float("nan"))
-        else:
-            if by_estimate:  # the baseline: the frame's motion from the last estimate, copied to every particle
-                self.propagated = seen.copy()
-            else:
-                self.propagated = observed(self.propagated, self.plane_propagated.get(frame.plane, m.positions_mm))
-            targets = x[self.driven].copy()  # the particles on the plane now pulled where the frame's motion puts them
-            axes = np.zeros((len(self.driven), 3, 3))
-            targets[on] = seen[self.driven[on]]
-            axes[on] = frame.projector
-            if self.config.predict:
-                self.estimator.move_to(seen)
-            res = self.estimator.estimate(targets, axes=axes)
-            positions = res.positions_mm
-            solve = dict(solver=res.method, steps=res.steps, linear_iterations=res.linear_iterations,
-                         converged=bool(res.converged and res.settled), slice_converged=res.converged, settled=res.settled,
-                         body_motion_mm=res.body_motion_mm, reason=res.reason, wall_s=res.wall_s, rms_residual_mm=res.final_rms_mm)
+        est = self.estimator.estimate(FrameObservation(frame, x, seen, on))
+        positions, solve = est.positions_mm, est.solve
         self.last_frame[frame.plane] = frame
         self.labels_now = particle_label_map(m, positions, self.label_values)
         self.plane_positions[frame.plane] = positions
@@ -412,7 +373,7 @@ class Tracker:
                     dose.add(field_mm, 1.0 if dose_weights is None else float(dose_weights[n]))
             if progress:
                 unit = "Newton iterations" if tf.row["solver"] == "quasistatic" else "steps"
-                work = (f"completion {1e3 * tf.row['wall_s']:.0f} ms" if tf.row["solver"] == "completion" else
+                work = (f"{tf.row['solver']} {1e3 * tf.row['wall_s']:.0f} ms" if tf.row["solver"] in ("completion", "copy") else
                         f"{tf.row['steps']} {unit}")
                 progress(f"frame {n}: plane {frame.plane}, {work}, {tf.row['latency_s'] * 1e3:.0f} ms "
                          f"(registration {tf.row['registration_ms']:.0f} ms, reference {tf.row['reference_ms']:.0f} ms), pancreas moved {tf.row['pancreas_shift_mm']:.2f} mm")

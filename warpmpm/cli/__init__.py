@@ -1,5 +1,5 @@
 """The ``warpmpm`` command: ``run | sweep | sweep-planes | train-planes | plan-planes | multi | train | view | track |
-make-cine | make-truth | evaluate-track | cine-info``.
+estimators | make-cine | make-truth | evaluate-track | cine-info``.
 
     warpmpm run                                  # the seed's experiment on the built-in phantom (= examples/seed_experiment.py)
     warpmpm run --labels L.nii.gz --image I.nii.gz --preset totalseg_mr --json out.json --rrd out.rrd
@@ -31,7 +31,7 @@ from .exit_codes import EXIT_INPUT, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_PIPE_C
 from .experiment_commands import cmd_multi, cmd_run, cmd_sweep, cmd_sweep_planes, cmd_train, cmd_view, config_from_args
 from .options import build_parser
 from .plane_commands import cmd_plan_planes, cmd_train_planes
-from .track_commands import cmd_cine_info, cmd_evaluate_track, cmd_make_cine, cmd_make_truth, cmd_track
+from .track_commands import cmd_cine_info, cmd_estimators, cmd_evaluate_track, cmd_make_cine, cmd_make_truth, cmd_track
 
 __all__ = ["build_parser", "config_from_args", "cmd_run", "cmd_sweep", "cmd_sweep_planes", "cmd_plan_planes", "cmd_train_planes", "cmd_multi", "cmd_train", "cmd_view", "EXIT_INTERNAL",
            "cmd_track", "cmd_make_cine", "cmd_make_truth", "cmd_evaluate_track", "cmd_cine_info", "COMMANDS", "main", "run_main",
@@ -65,7 +65,7 @@ def _quiet(verbose: bool) -> None:
 
 COMMANDS = {"run": cmd_run, "cine-info": cmd_cine_info, "sweep": cmd_sweep, "sweep-planes": cmd_sweep_planes, "plan-planes": cmd_plan_planes,
             "train-planes": cmd_train_planes, "multi": cmd_multi, "train": cmd_train, "view": cmd_view, "track": cmd_track,
-            "make-cine": cmd_make_cine, "make-truth": cmd_make_truth, "evaluate-track": cmd_evaluate_track}
+            "make-cine": cmd_make_cine, "estimators": cmd_estimators, "make-truth": cmd_make_truth, "evaluate-track": cmd_evaluate_track}
 
 
 def main(argv=None) -> int:

@@ -325,11 +325,14 @@ def build_parser() -> argparse.ArgumentParser:
     ka = k.add_argument_group("advanced: the model, the solver and the registration (defaults measured: docs/decisions/)")
     ka.add_argument("--organs", default="psdl")
     ka.add_argument("--particle-step", type=int, default=1)
-    ka.add_argument("--estimator", default=_tracker_default("estimator"), choices=["slice-driven", "completion"],
-                   help="what decides the motion no plane shows: slice-driven (default): the seed's MPM driven at the plane's "
-                   "particles (--solver, --max-steps, --wait-settled, --no-predict set it); completion: the whole abdomen's "
-                   "equilibrium (organs, tissue, held spine) driven by the planes' observed motion, set up once before the "
-                   "first frame (40-90 s); measured in docs/results.md")
+    from ..estimators import ESTIMATORS
+
+    ka.add_argument("--estimator", default=_tracker_default("estimator"), choices=list(ESTIMATORS),
+                   help="what turns a frame's observed motion into every organ's (`warpmpm estimators` lists them with their "
+                   "measurements): copy (default, the measured best): each organ moved by what the planes show of it; "
+                   "slice-driven: the seed's MPM driven at the plane's particles (--solver, --max-steps, --wait-settled, "
+                   "--no-predict set it); completion: the whole abdomen's equilibrium driven by the planes' observed motion, "
+                   "set up once before the first frame (40-90 s)")
     ka.add_argument("--solver", default=_tracker_default("solver").method, choices=["auto", "explicit", "quasistatic"],
                    help="how each frame's equilibrium is found: auto (default): Newton / conjugate-gradient iterations to the "
                    "settled equilibrium, going on with explicit MPM steps when a frame has not settled after a few; explicit "
@@ -403,6 +406,9 @@ def build_parser() -> argparse.ArgumentParser:
     ci.add_argument("--json", action="store_true", help="print a JSON list of objects (plane, size, spacing_mm, thickness_mm, "
                     "origin_mm, row_direction, column_direction, time_s, ...) instead of a table")
 
+    sub.add_parser("estimators", help="list the tracker's estimators: what each uses, what it measured, which is the default",
+                   description="The registered estimators (warpmpm.estimators.ESTIMATORS) of `warpmpm track --estimator`, one "
+                   "line each: its name, what it uses, and what it measured (where).")
     v = sub.add_parser("view", help="open, summarise or picture a Rerun recording")
     v.add_argument("rrd")
     v.add_argument("--summary", action="store_true", help="print entities, timelines and counts (no display needed)")

@@ -8,7 +8,7 @@ import sys
 
 from ..errors import InputError
 
-__all__ = ["cmd_track", "cmd_make_cine", "cmd_make_truth", "cmd_evaluate_track", "cmd_cine_info"]
+__all__ = ["cmd_estimators", "cmd_track", "cmd_make_cine", "cmd_make_truth", "cmd_evaluate_track", "cmd_cine_info"]
 
 
 def _planning_case(image, labels, preset):
@@ -211,9 +211,8 @@ def _track_into(a, case, frames, folder) -> int:
     tracker = Tracker(case, frames, cfg)
     print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
           f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes", file=sys.stderr)
-    if tracker.completion is not None:
-        print(f"completion: the abdomen's response to each seen organ's motion solved once in {tracker.completion_setup_s:.1f} s "
-              f"({tracker.completion.R.shape[-1]} responses, {tracker.completion.cm.summary()['unknowns']:,} unknowns)", file=sys.stderr)
+    if tracker.estimator.summary():
+        print(tracker.estimator.summary(), file=sys.stderr)
     recorder = None
     if a.rrd:
         from ..experiment.io import check_output_path
@@ -239,6 +238,18 @@ def _track_into(a, case, frames, folder) -> int:
 
     lat = np.array([r["latency_s"] for r in rows[1:]] or [rows[0]["latency_s"]])
     print(f"latency per frame after the first: median {np.median(lat):.2f} s, p95 {np.percentile(lat, 95):.2f} s; wrote {a.out}")
+    return 0
+
+
+def cmd_estimators(a) -> int:
+    """``warpmpm estimators``: the registered estimators, one line each (the default marked)."""
+    from ..estimators import ESTIMATORS
+    from ..tracker import TrackerConfig
+
+    default = TrackerConfig().estimator
+    for name, cls in ESTIMATORS.items():
+        mark = " (default)" if name == default else ""
+        print(f"{name}{mark}: uses {cls.uses}; measured: {cls.measured}")
     return 0
 
 
