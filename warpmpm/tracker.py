@@ -8,10 +8,12 @@ estimate and averaged over the slice thickness, :func:`warpmpm.imaging.render_pl
 first against the planning image); the particles lying within the frame's slice thickness of its plane *in the current
 estimate* (not at planning: organs move through a plane as they breathe) take that motion in the plane
 (the through-plane part is left to the physics or to another plane). Every organ a plane shows takes the motion
-the planes observed, combined over the series' planes (the last frame of each); then the estimate of what no plane
-shows:
+the planes observed, combined over the series' planes (the last frame of each); then a registered estimator
+(:mod:`warpmpm.estimators`) decides every particle's position:
 
-- ``estimator="slice-driven"`` (default): the seed's multi-organ MPM moves from the previous frame's state, predicted
+- ``estimator="copy"`` (default): that observed motion as it is (each organ by what the frame shows of it, an organ it
+  does not measure by the whole slice's motion); the measured best, see :attr:`TrackerConfig.estimator`.
+- ``estimator="slice-driven"``: the seed's multi-organ MPM moves from the previous frame's state, predicted
   by the frame's motion, to a new equilibrium driven at the particles on the frame's plane.
 - ``estimator="completion"``: the equilibrium of the whole abdomen (organs, the tissue around them, the held spine;
   :mod:`warpmpm.solvers.completion`) driven by that observed motion decides the organs farther than ``reach_mm`` from
