@@ -47,7 +47,9 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", default="phantom,mr,ct")
     p.add_argument("--planes", default="sagittal+coronal,sagittal", help="plane sets, comma-separated; '+' joins planes")
-    p.add_argument("--estimators", default="completion,slice-driven")
+    p.add_argument("--estimators", default="completion,slice-driven",
+                   help="estimators to compare, comma-separated; copy:RULE is the copy with TrackerConfig.unseen=RULE "
+                   "(whole-slice, nearest, global, none)")
     p.add_argument("--frames", type=int, default=16)
     p.add_argument("--work", default=os.path.join(ROOT, "runs", "track_fem"), help="truths, series and tracks go here (kept)")
     p.add_argument("--raw", type=raw.check_name, default="default", help="the run's name in results/track_fem.json")
@@ -79,9 +81,15 @@ def main(argv=None):
             frames = read_cine(os.path.join(series, "cine"))
             for est in a.estimators.split(","):
                 t0 = time.perf_counter()
-                tracker = Tracker(case, frames, TrackerConfig(estimator=est, preset=preset))
+                name_, _, rule = est.partition(":")  # copy:RULE is the copy with that rule for the organs a frame misses
+                cfg = TrackerConfig(estimator=name_, preset=preset, **({"unseen": rule} if rule else {}))
+                tracker = Tracker(case, frames, cfg)
                 setup = time.perf_counter() - t0
-                out = os.path.join(base, f"track_{planes}_{est}")
+                out = os.path.join(base, f"track_{planes}_{est.replace(':', '_')}")
+                if os.path.isdir(out):
+                    import shutil
+
+                    shutil.rmtree(out)  # this benchmark's own track folder under --work
                 tracker.run(out)
                 ev = evaluate_track(out, truth)
                 rows.append({"case": name, "planes": planes, "estimator": est, "setup_s": setup,

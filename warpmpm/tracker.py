@@ -139,6 +139,11 @@ class TrackerConfig:
     reference. ``"previous-frame"``: the plane's last frame (the first: the planning image), the motion since then.
     The estimate is 11.6 % lower on the mean of five MR cine series, lower on each, for ~30 ms a frame of rendering
     (docs/results.md)."""
+    unseen: Literal["whole-slice", "nearest", "global", "none"] = "whole-slice"
+    """The ``copy`` estimator's rule for an organ the frame's registration does not measure (off the plane, or too little
+    of it on it): ``whole-slice`` the whole slice's in-plane affine applied at the organ; ``nearest`` the mean in-plane
+    motion of the nearest measured organ (centroids); ``global`` the mean in-plane motion of the measured organs' particles;
+    ``none`` no motion from this frame. Measured in ``docs/decisions/2026-12-04-estimators.md``."""
     reach_mm: float = 15.0
     """How far (mm) a particle may start from a plane and still come onto it during the series: those within
     half the slice thickness plus this of a plane at planning are the candidates checked every frame."""
@@ -163,6 +168,8 @@ class Tracker:
         lp = cfg.registration_linear_prior
         if not (isinstance(lp, (int, float)) and not isinstance(lp, bool) and np.isfinite(lp) and lp >= 0):
             raise InputError(f"--linear-prior (TrackerConfig.registration_linear_prior) must be a finite number >= 0, got {lp!r}")
+        if cfg.unseen not in ("whole-slice", "nearest", "global", "none"):
+            raise InputError(f"TrackerConfig.unseen must be whole-slice, nearest, global or none, got {cfg.unseen!r}")
         if cfg.reference not in ("estimate", "previous-frame"):
             raise InputError(f"TrackerConfig.reference must be 'estimate' or 'previous-frame', got {cfg.reference!r}")
         from .estimators import get_estimator
@@ -286,7 +293,7 @@ class Tracker:
         else:  # the baseline on its own: the frame's motion applied to the copy's positions (the estimate leaves the copy)
             self.propagated = observed(self.propagated, self.propagated if by_estimate else
                                        self.plane_propagated.get(frame.plane, m.positions_mm))
-        est = self.estimator.estimate(FrameObservation(frame, x, seen, on))
+        est = self.estimator.estimate(FrameObservation(frame, x, seen, on, tuple(per_organ)))
         positions, solve = est.positions_mm, est.solve
         self.last_frame[frame.plane] = frame
         self.labels_now = particle_label_map(m, positions, self.label_values)

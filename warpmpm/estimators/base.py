@@ -26,12 +26,15 @@ class FrameObservation:
             component kept from ``positions_mm`` (what a plane cannot see).
         on_plane: boolean mask over the estimator's ``driven`` candidates: those within half the slice thickness of
             the frame's plane now.
+        measured_organs: the organs whose own motion the frame's registration measured (the others in
+            ``observed_mm`` took the whole slice's).
     """
 
     frame: object
     positions_mm: np.ndarray
     observed_mm: np.ndarray
     on_plane: np.ndarray
+    measured_organs: tuple = ()
 
 
 @dataclass
