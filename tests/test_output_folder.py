@@ -172,3 +172,11 @@ def test_a_track_written_before_records_is_still_replaced_and_the_main_job_never
     with pytest.raises(SystemExit, match="not an earlier main job"):
         job.main(["--out", str(mine)])
     assert (mine / "notes.txt").read_text() == "a user's notes"
+
+
+def test_make_truth_still_makes_its_missing_parent_folders(tmp_path):
+    """Creating folders deletes nothing: make-truth made --out's missing parents before output folders were locked, and
+    still does (track and make-cine refuse a missing parent, as they always did)."""
+    out = tmp_path / "a" / "b" / "truth"
+    assert main(["make-truth", "--phantom-resolution", "4", "--frames", "2", "--cell-mm", "12", "--out", str(out)]) == 0
+    assert (out / "truth.json").exists() and (out / RECORD).exists()

@@ -192,10 +192,11 @@ class OutputFolder:
         inputs: (option, path) of every input of the run: none may be ``out`` or lie inside it.
         option: the option's name in messages.
         record: extra fields for the record file.
+        make_parent: create ``out``'s parent folders when missing (``make-truth`` always did).
     """
 
     def __init__(self, out: str, *, kind: str, overwrite: bool = False, inputs: Iterable[tuple[str, str]] = (),
-                 option: str = "--out", record: dict | None = None):
+                 option: str = "--out", record: dict | None = None, make_parent: bool = False):
         self.given, self.kind, self.option = out, kind, option
         self.out = os.path.abspath(out)
         self.parent = os.path.dirname(self.out)
@@ -206,6 +207,12 @@ class OutputFolder:
         if os.path.islink(self.out):
             raise InputError(f"{option} {out} is a symbolic link; name the folder itself ({os.path.realpath(self.out)}) "
                              "or a new one")
+        if make_parent and not os.path.lexists(self.parent):
+            try:  # creating folders deletes nothing
+                os.makedirs(self.parent)
+            except OSError as exc:
+                raise InputError(f"the folder {self.parent} for {option} cannot be created ({exc.strerror}); name a folder "
+                                 "you can write to") from None
         if not os.path.isdir(self.parent):
             raise InputError(f"the folder {self.parent} for {option} does not exist; create it first")
         if not os.access(self.parent, os.W_OK | os.X_OK):

@@ -314,7 +314,7 @@ def cmd_make_truth(a) -> int:
                       cell_mm=a.cell_mm, margin_mm=a.margin_mm, interface_mm=a.interface_mm)
     # checked and locked before the solve: never an input, never a folder that holds anything (a truth is never mixed
     # with another), one writer at a time
-    folder = OutputFolder(a.out, kind="truth", record={"arguments": _arguments(a)},
+    folder = OutputFolder(a.out, kind="truth", record={"arguments": _arguments(a)}, make_parent=True,
                           inputs=[("--image", a.image), ("--labels", a.labels)])
     try:
         return _make_truth_into(a, cfg, folder)

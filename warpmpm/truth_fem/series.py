@@ -246,5 +246,5 @@ def write_truth(series: TruthSeries, out_dir: str) -> None:
     that is not empty is refused (a truth is never mixed with another), and so is a second writer."""
     from ..output_folder import OutputFolder
 
-    with OutputFolder(out_dir, kind="truth") as work:
+    with OutputFolder(out_dir, kind="truth", make_parent=True) as work:
         write_truth_files(series, work)
