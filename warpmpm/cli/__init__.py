@@ -13,6 +13,7 @@ estimators | make-cine | make-truth | evaluate-track | cine-info``.
     warpmpm make-cine --out runs/cine --frames 8                  # a synthetic series with its truth
     warpmpm track --image I --labels L --cine runs/cine/cine --out runs/track
     warpmpm evaluate-track --track runs/track --truth runs/cine/truth
+    warpmpm estimators                                           # the tracker's estimators, what each measured
 
 Exit codes: 0 success; 1 some sweep tasks failed (their rows are missing; re-run to retry); 2 bad
 input, or a file the system would not read or write (one ``error:`` line naming it, nothing written); 3 the
