@@ -89,3 +89,42 @@ def test_no_host_module_is_over_about_500_lines():
                 if "@wp.kernel" not in text and text.count("\n") > 500:
                     long.append((os.path.relpath(os.path.join(dirpath, f), ROOT), text.count("\n")))
     assert not long, f"host modules over 500 lines: {long}"
+
+
+def test_the_architecture_page_names_modules_that_exist():
+    """docs/architecture.md: every module its rooms table and its solvers' room name exists, and every
+    `module.name` of a tracked frame's walk is an attribute of that module (issue 53: the page had drifted)."""
+    import importlib
+    import re
+
+    text = open(os.path.join(ROOT, "..", "docs", "architecture.md")).read()
+    rooms, solvers_room = text.split("## The solvers' room")[0], text.split("## The solvers' room")[1].split("## A tracked")[0]
+    walk = text.split("## A tracked frame's walk")[1].split("\n## ")[0]
+    checked = 0
+    for line in rooms.splitlines():
+        cells = line.split("|")
+        if len(cells) > 3 and "`" in cells[2]:
+            for name in re.findall(r"`([a-z_]+/?)`", cells[2]):
+                base = os.path.join(ROOT, "..") if name == "viewer/" else ROOT
+                assert os.path.exists(os.path.join(base, name.rstrip("/") + ("" if name.endswith("/") else ".py"))), name
+                checked += 1
+    for line in solvers_room.splitlines():
+        cells = line.split("|")
+        if len(cells) > 2:
+            for name in re.findall(r"`([a-z_]+)`", cells[1]):
+                assert os.path.exists(os.path.join(ROOT, "solvers", name + ".py")), name
+                checked += 1
+    for mod, attr in re.findall(r"`([a-z_]+(?:\.[a-z_]+)*)\.([A-Za-z_]+)`", walk):
+        if attr in ("csv", "json", "dcm", "gz", "png", "npz", "rrd"):  # a file name, not a module's attribute
+            continue
+        for package in ("warpmpm", "warpmpm.solvers"):
+            try:
+                m = importlib.import_module(f"{package}.{mod}")
+            except ImportError:
+                continue
+            assert hasattr(m, attr), f"{package}.{mod}.{attr}"
+            checked += 1
+            break
+        else:
+            raise AssertionError(f"the walk names `{mod}.{attr}`: no such module in warpmpm")
+    assert checked > 40
