@@ -17,5 +17,5 @@ else
          "with these independent readers will skip, saying so" >&2
 fi
 python3 -m venv .venv
-.venv/bin/pip install -q -e .
+.venv/bin/pip install -q -e ".[test]"
 echo "setup: done (.venv; dciodvfy: $(command -v dciodvfy || echo absent); plastimatch: $(command -v plastimatch || echo absent))"

@@ -8,6 +8,8 @@ import pkgutil
 import subprocess
 import sys
 
+import pytest
+
 import warpmpm
 
 ROOT = os.path.dirname(warpmpm.__file__)
@@ -128,3 +130,22 @@ def test_the_architecture_page_names_modules_that_exist():
         else:
             raise AssertionError(f"the walk names `{mod}.{attr}`: no such module in warpmpm")
     assert checked > 40
+
+
+def test_only_what_tracking_needs_is_a_hard_dependency_and_a_missing_extra_names_itself(monkeypatch):
+    """Issue 53: pytest, dask, optuna, xgboost and rerun-sdk were hard runtime dependencies. Now extras, and a feature
+    that needs a missing one says which `pip install 'warpmpm[...]'` brings it."""
+    tomllib = pytest.importorskip("tomllib")
+    meta = tomllib.load(open(os.path.join(ROOT, "..", "pyproject.toml"), "rb"))["project"]
+    core = " ".join(meta["dependencies"]).lower()
+    for pkg in ("pytest", "dask", "optuna", "xgboost", "rerun"):
+        assert pkg not in core, pkg
+    assert {"models", "sweeps", "viewer", "test"} <= set(meta["optional-dependencies"])
+    from warpmpm.errors import InputError, optional
+    from warpmpm.plane_placement import PlacementModel
+
+    monkeypatch.setitem(sys.modules, "xgboost", None)  # as if not installed: importing it raises ImportError
+    with pytest.raises(InputError, match=r"plan-planes --method model.*pip install 'warpmpm\[models\]'"):
+        PlacementModel.load()
+    with pytest.raises(InputError, match=r"warpmpm\[viewer\]"):
+        optional("rerun.nothing_here", "a Rerun recording (--rrd)")

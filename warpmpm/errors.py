@@ -6,7 +6,7 @@
   grid). The CLI prints one ``simulation error:`` line and exits with code 3.
 """
 
-__all__ = ["InputError", "InputWarning", "SimulationError", "check_input_file", "strict_json"]
+__all__ = ["InputError", "InputWarning", "SimulationError", "check_input_file", "strict_json", "optional"]
 
 
 class InputError(ValueError):
@@ -78,3 +78,20 @@ class _Undefined:
 
     def __init__(self, reason: str):
         self.reason = reason
+
+
+#: the optional packages and the extra of ``pip install warpmpm[EXTRA]`` that brings each (pyproject.toml)
+EXTRAS = {"xgboost": "models", "optuna": "models", "distributed": "sweeps", "rerun": "viewer"}
+
+
+def optional(module: str, feature: str):
+    """Import an optional dependency for ``feature``; :class:`InputError` saying which extra to install when absent."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        top = module.split(".")[0]
+        extra = EXTRAS.get(top, "all")
+        raise InputError(f"{feature} needs the optional package {top!r}, which is not installed: pip install "
+                         f"'warpmpm[{extra}]' (or bash scripts/setup.sh, which installs everything)") from None

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, optional
 from .images import ORGANS
 from .model import ParticleModel
 from .slices import DrivingSlice, orientation_image_axis
@@ -277,7 +277,7 @@ class PlacementModel:
 
     @staticmethod
     def load(path: str = DEFAULT_PLACEMENT_MODEL) -> "PlacementModel":
-        import xgboost as xgb
+        xgb = optional("xgboost", "the plane-placement model (plan-planes --method model)")
 
         if not os.path.isfile(path):
             raise InputError(f"plane-placement model {path} not found (or not a file); train one with `warpmpm train-planes`")
@@ -321,7 +321,7 @@ def organ_inputs(X: np.ndarray, organ: str) -> np.ndarray:
 
 def _fit(params: dict, rounds: int, X, y):
     """One organ's regressor of the log fraction missed ``y`` on its inputs ``X`` (:func:`organ_inputs`)."""
-    import xgboost as xgb
+    xgb = optional("xgboost", "training the plane-placement model")
 
     params = {**params, "monotone_constraints": "(" + ",".join(str(m) for m in MONOTONE) + ")"}
     return xgb.train(params, xgb.DMatrix(np.asarray(X, np.float32), label=y, feature_names=list(ORGAN_INPUTS)),

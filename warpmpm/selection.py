@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, optional
 from .images import COMBINATIONS, ORGANS, parse_organs
 from .model import ParticleModel
 
@@ -244,7 +244,7 @@ class ConditionSelector:
 
     @staticmethod
     def load(path: str) -> "ConditionSelector":
-        import xgboost as xgb
+        xgb = optional("xgboost", "a selection model (--slices auto)")
 
         if not os.path.exists(path) or not os.path.exists(path + ".meta.json"):
             raise InputError(f"selection model {path} (and its .meta.json) not found; train one with `warpmpm train`")
@@ -278,7 +278,7 @@ class ConditionSelector:
 
 
 def _xgb_train(params: dict, X, y, rounds: int, features=FEATURES):
-    import xgboost as xgb
+    xgb = optional("xgboost", "training a selection model")
 
     d = xgb.DMatrix(np.asarray(X, dtype=np.float32), label=y, feature_names=list(features))
     return xgb.train({k: v for k, v in params.items()}, d, num_boost_round=rounds)
@@ -325,7 +325,7 @@ def tune_and_train(table: TrainingTable, *, split: str = "case", patience: int =
     Stops after ``patience`` trials without a better mean R2 (or ``max_trials``). ``storage``: an
     Optuna storage URL such as ``sqlite:///selection.db``; an existing study of that name resumes.
     """
-    import optuna
+    optuna = optional("optuna", "tuning a selection model")
 
     if split == "case" and test_cases is not None:
         test = np.isin(table.cases, list(test_cases))

@@ -46,6 +46,9 @@ def cmd_run(a) -> int:
         cfg = replace(cfg, organs=organs, slices=slices)
     recorder = None
     if a.rrd:
+        from ..errors import optional
+
+        optional("rerun", "a Rerun recording (--rrd)")
         from viewer.recording import RerunRecorder
 
         recorder = RerunRecorder(a.rrd, every=cfg.rrd_every)
@@ -199,6 +202,9 @@ def cmd_train(a) -> int:
 
 
 def cmd_view(a) -> int:
+    from ..errors import optional
+
+    optional("rerun", "warpmpm view")
     from viewer.__main__ import main as view_main
 
     argv = [a.rrd] + (["--summary"] if a.summary else []) + (["--screenshot", a.screenshot] if a.screenshot else [])

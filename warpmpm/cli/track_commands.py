@@ -215,7 +215,10 @@ def _track_into(a, case, frames, folder) -> int:
         print(tracker.estimator.summary(), file=sys.stderr)
     recorder = None
     if a.rrd:
+        from ..errors import optional
         from ..experiment.io import check_output_path
+
+        optional("rerun", "a Rerun recording (--rrd)")
         from viewer.recording import TrackRecorder
 
         recorder = TrackRecorder(check_output_path(a.rrd, "--rrd"), tracker.model)

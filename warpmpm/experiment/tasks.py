@@ -117,7 +117,10 @@ def _run_elsewhere(fn, args, take, workers, scheduler) -> None:
                     proc.terminate()
                 raise
     else:
-        from distributed import Client, LocalCluster, as_completed
+        from ..errors import optional
+
+        distributed = optional("distributed", "a Dask scheduler (--scheduler)")
+        Client, LocalCluster, as_completed = distributed.Client, distributed.LocalCluster, distributed.as_completed
 
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) if scheduler == "local" else None
         client = Client(cluster if cluster is not None else scheduler)
