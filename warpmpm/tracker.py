@@ -289,7 +289,8 @@ class Tracker:
         # the registration moves the reference's content: the estimate now, or the plane when it was last imaged
         seen = observed(x, x if by_estimate else self.plane_positions.get(frame.plane, m.positions_mm))
         if self.estimator.baseline_from_estimate:  # the baseline: the frame's motion from the last estimate
-            self.propagated = seen.copy() if by_estimate else observed(self.propagated, self.plane_propagated.get(frame.plane, m.positions_mm))
+            self.propagated = (seen.copy() if by_estimate else
+                               observed(self.propagated, self.plane_propagated.get(frame.plane, m.positions_mm)))
         else:  # the baseline on its own: the frame's motion applied to the copy's positions (the estimate leaves the copy)
             self.propagated = observed(self.propagated, self.propagated if by_estimate else
                                        self.plane_propagated.get(frame.plane, m.positions_mm))
