@@ -86,13 +86,14 @@ def _beam_on(path: str, n_frames: int) -> list[float]:
 
 
 def _planning_reference(a, case):
-    """The planning series' reference (UIDs, patient) when the planning image is a DICOM series; None otherwise."""
+    """The planning series' reference (UIDs, patient) when the planning image is a DICOM series; None otherwise. Read
+    once and kept in ``case.meta["dicom"]`` (as a structure set's case already has it): the cine check, the dose check
+    and the DICOM writer all ask."""
     from ..dicom_rt import read_series_reference
 
-    ref = case.meta.get("dicom")
-    if ref is None and os.path.isdir(a.image):
-        ref = read_series_reference(a.image)
-    return ref
+    if "dicom" not in case.meta:
+        case.meta["dicom"] = read_series_reference(a.image) if os.path.isdir(a.image) else None
+    return case.meta["dicom"]
 
 
 def _check_same_patient(ref, what: str, path: str, frame_of_reference: str, patient: str, registered: bool) -> None:
