@@ -148,7 +148,7 @@ def test_valid_inputs_the_readers_once_refused(clinic, tmp_path):
     c = f"{d}/clinic"
     frames = read_cine(f"{c}/cine_hours")
     assert [round(f.time_s) for f in frames] == [0, 3600, 7200]
-    from warpmpm.cli.track_commands import _beam_on
+    from warpmpm.session import read_beam_on as _beam_on
 
     assert _beam_on(f"{c}/beam_bom.csv", 3) == [0.2, 0.2, 0.2]
 
@@ -278,7 +278,7 @@ def test_fuzzed_clinic_files_give_input_errors_or_a_result_never_anything_else(c
 
 @pytest.mark.parametrize("reader", ["beam-on", "plane-sweep", "sweep", "track"])
 def test_fuzzed_csvs_give_input_errors_never_anything_else(tmp_path, reader):
-    from warpmpm.cli.track_commands import _beam_on
+    from warpmpm.session import read_beam_on as _beam_on
     from warpmpm.experiment.io import read_csv
     from warpmpm.experiment.train_planes import read_sweep_rows
 

@@ -8,7 +8,9 @@ import pytest
 
 from warpmpm.cli import main
 from warpmpm.errors import InputError
-from warpmpm.output_folder import RECORD, OutputFolder
+from warpmpm.output_folder import RECORD, OutputFolder, record_name
+
+TRACK_RECORD = record_name("track")  # track.json
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +54,7 @@ def test_overwrite_replaces_only_an_earlier_track(series, tmp_path, capsys):
     assert main(_track(series, series, "--overwrite")) == 2
     out = tmp_path / "track"
     assert main(_track(series, out)) == 0
-    assert (out / RECORD).exists() and '"kind": "track"' in (out / RECORD).read_text()
+    assert (out / TRACK_RECORD).exists() and '"kind": "track"' in (out / TRACK_RECORD).read_text()
     (out / "stale.txt").write_text("left by the earlier track's user")
     assert main(_track(series, out)) == 2 and "--overwrite" in capsys.readouterr().err
     assert main(_track(series, out, "--overwrite")) == 0
@@ -122,8 +124,10 @@ def test_an_interrupted_writer_leaves_the_old_result(tmp_path):
 
 
 def test_the_record_says_what_made_the_folder_from_what(series, tmp_path):
-    """warpmpm-output.json: kind, version, the arguments, each input's sha256 (a folder's over its files), the machine,
-    the run's time and its warnings, which still reach the user (and a recording catch_warnings)."""
+    """track.json (warpmpm-output.json for other kinds): kind, version, the arguments, the estimator and the full
+    configuration, each input's sha256 (a folder's over its files), the machine, the run's time and latency, the outputs
+    and its warnings, which still reach the user (and a recording catch_warnings). A user's own track.json is not
+    taken for a record."""
     import hashlib
     import json
     import warnings
@@ -133,8 +137,11 @@ def test_the_record_says_what_made_the_folder_from_what(series, tmp_path):
 
     out = tmp_path / "track"
     assert main(_track(series, out)) == 0
-    rec = json.loads((out / RECORD).read_text())
+    rec = json.loads((out / TRACK_RECORD).read_text())
     assert rec["kind"] == "track" and rec["written_by"].startswith("warpmpm ") and rec["arguments"]["out"] == str(out)
+    assert rec["estimator"] == "copy" and rec["config"]["estimator"] == "copy" and rec["config"]["registration"] == "gauss-newton"
+    assert rec["config"]["solver"]["method"] == "auto" and rec["outputs"] == ["labels"] and rec["frames"] == 2
+    assert 0 < rec["latency_s"]["median"] < 60 and rec["n_particles"] > rec["n_driven"] > 0
     labels = os.path.join(series, "planning", "labels.nii.gz")
     got = {i["option"]: i for i in rec["inputs"]}
     assert got["--labels"]["sha256"] == hashlib.sha256(open(labels, "rb").read()).hexdigest()
@@ -147,6 +154,11 @@ def test_the_record_says_what_made_the_folder_from_what(series, tmp_path):
                 fh.write("x")
             warnings.warn("a named warning", InputWarning)
     assert json.loads((tmp_path / "w" / RECORD).read_text())["warnings"] == ["a named warning"]
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "track.json").write_text('{"kind": "track"}')  # a user's file of that name, not warpmpm's record
+    (mine / "track.csv").write_text("frame\n")
+    assert main(_track(series, mine, "--overwrite")) == 2 and (mine / "track.json").exists()
 
 
 def test_a_track_written_before_records_is_still_replaced_and_the_main_job_never_deletes_a_users_folder(series, tmp_path, capsys):
@@ -158,8 +170,8 @@ def test_a_track_written_before_records_is_still_replaced_and_the_main_job_never
     (old / "labels").mkdir(parents=True)
     (old / "track.csv").write_text("frame\n0\n")
     (old / "particles.npz").write_bytes(b"x")
-    assert main(_track(series, old, "--overwrite")) == 0 and (old / RECORD).exists()
-    (old / RECORD).unlink()
+    assert main(_track(series, old, "--overwrite")) == 0 and (old / TRACK_RECORD).exists()
+    (old / TRACK_RECORD).unlink()
     (old / "notes.txt").write_text("mine")  # not a track's layout any more
     assert main(_track(series, old, "--overwrite")) == 2 and "did not write" in capsys.readouterr().err
     root = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))

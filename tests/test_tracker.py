@@ -289,7 +289,8 @@ def test_the_written_displacement_field_recovers_a_known_motion(tmp_path, tiny_c
     displacement (median; 4 % at the 95th percentile) at the particles' voxels; the field is zero far from
     every particle; the smoothing over the particles' box only equals the whole grid's; it reads back as float32
     vectors on the planning grid."""
-    from warpmpm.tracker import _write_image, displacement_field
+    from warpmpm.outputs import write_image as _write_image
+    from warpmpm.tracker import displacement_field
 
     m, g = tiny_model, tiny_case.geometry
     t = np.array([1.5, -2.0, 4.0])
@@ -351,9 +352,9 @@ def test_track_never_mixes_two_tracks_in_one_folder(series, tmp_path, capsys):
     assert main([*args, "--out", str(old)]) == 2 and "--overwrite" in capsys.readouterr().err
     assert [p.name for p in old.iterdir()] == ["frame_0099.nii.gz"]
     assert main([*args, "--out", str(old), "--overwrite"]) == 2 and "did not write" in capsys.readouterr().err  # not ours
-    (old / "warpmpm-output.json").write_text('{"kind": "track"}')  # an earlier track of this tool's
+    (old / "warpmpm-output.json").write_text('{"kind": "track"}')  # an earlier track of this tool's (an older record)
     assert main([*args, "--out", str(old), "--overwrite"]) == 0
-    assert sorted(p.name for p in old.iterdir()) == ["labels", "particles.npz", "track.csv", "warpmpm-output.json"]
+    assert sorted(p.name for p in old.iterdir()) == ["labels", "particles.npz", "track.csv", "track.json"]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no work folder or lock left behind
 
 

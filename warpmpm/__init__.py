@@ -28,6 +28,8 @@ _LAZY = {
     "SliceDrivenEstimator": "warpmpm.driving", "affine_targets": "warpmpm.targets", "paper_affine": "warpmpm.groundtruth",
     "CompletionConfig": "warpmpm.solvers.completion", "CompletionModel": "warpmpm.solvers.completion",
     "complete": "warpmpm.solvers.completion",
+    "track": "warpmpm.session", "TrackerConfig": "warpmpm.tracker", "ESTIMATORS": "warpmpm.estimators",
+    "OUTPUTS": "warpmpm.outputs",
 }
 
 __all__ = ["InputError", "SimulationError", "COMBINATIONS", "ORGANS", "PRESETS", "Case", "Geometry", "load_case", "parse_organs",

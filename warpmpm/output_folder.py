@@ -29,16 +29,25 @@ from collections.abc import Iterable
 
 from .errors import InputError, strict_json
 
-__all__ = ["RECORD", "OutputFolder", "check_not_an_input", "remove_dead_work_folders", "written_by_warpmpm", "write_record",
+__all__ = ["RECORD", "RECORD_NAMES", "record_name", "OutputFolder", "check_not_an_input", "remove_dead_work_folders",
+           "written_by_warpmpm", "write_record",
            "LEGACY_LAYOUTS"]
 
 RECORD = "warpmpm-output.json"
-"""The record file in every output folder this tool writes: what it is (``kind``), what wrote it (``written_by``,
+"""The record file in every output folder this tool writes (a track's is ``track.json``, :data:`RECORD_NAMES`): what it is (``kind``), what wrote it (``written_by``,
 ``commit`` where the package runs from a git checkout), when (``created``, ``wall_s``), from what (``inputs``: each
 input's option, path and sha256; a folder's over its files' names and bytes), where (``machine``), with which
 arguments, and every warning the run gave. ``--overwrite`` replaces a folder only when it holds this file."""
 
+#: kinds whose record file has a name of its own (any other kind's is :data:`RECORD`)
+RECORD_NAMES = {"track": "track.json"}
+
 WORK_PREFIX = ".warpmpm-work-"
+
+
+def record_name(kind: str) -> str:
+    """The record file's name in a folder of ``kind``."""
+    return RECORD_NAMES.get(kind, RECORD)
 
 #: what a folder of each kind held before the record file existed (2026-12-03 and earlier): a folder holding nothing
 #: else, and the first name listed, is taken as this tool's (so ``--overwrite`` replaces an older track too)
@@ -69,7 +78,7 @@ def write_record(folder: str, kind: str, **fields) -> None:
 
     rec = {"kind": kind, "written_by": f"warpmpm {__version__}", "commit": _commit(),
            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "machine": _machine(), **fields}
-    with open(os.path.join(folder, RECORD), "w") as fh:
+    with open(os.path.join(folder, record_name(kind)), "w") as fh:
         json.dump(strict_json(rec), fh, indent=1, allow_nan=False)
 
 
@@ -234,7 +243,7 @@ class OutputFolder:
                     raise InputError(f"{option} {out} holds a warpmpm {rec.get('kind')!r}, not a {kind}: --overwrite "
                                      f"replaces only an earlier {kind}; name a new folder")
                 if not written_by_warpmpm(self.out, kind):
-                    raise InputError(f"{option} {out} holds files this tool did not write (no {RECORD}): --overwrite "
+                    raise InputError(f"{option} {out} holds files this tool did not write (no {record_name(kind)}): --overwrite "
                                      f"replaces only an earlier {kind} of warpmpm's; name a new folder")
                 self._replace = True
         self._take_lock()
@@ -242,18 +251,25 @@ class OutputFolder:
         self.warnings: list[str] = []
         self._t0 = time.perf_counter()
         self._showwarning = None
+        #: the record written on commit (empty before)
+        self.last_record: dict = {}
 
     @staticmethod
     def _read_record(folder: str) -> dict | None:
-        path = os.path.join(folder, RECORD)
-        if not os.path.isfile(path) or os.path.islink(path):
-            return None
-        try:
-            with open(path) as fh:
-                rec = json.load(fh)
-        except (OSError, ValueError):
-            return None
-        return rec if isinstance(rec, dict) else None
+        """The folder's record: a kind's own record file written by this tool (``written_by`` says so), else
+        :data:`RECORD`; None when there is none."""
+        for name in (*sorted(set(RECORD_NAMES.values())), RECORD):
+            path = os.path.join(folder, name)
+            if not os.path.isfile(path) or os.path.islink(path):
+                continue
+            try:
+                with open(path) as fh:
+                    rec = json.load(fh)
+            except (OSError, ValueError):
+                continue
+            if isinstance(rec, dict) and (name == RECORD or str(rec.get("written_by", "")).startswith("warpmpm")):
+                return rec
+        return None
 
     def _take_lock(self) -> None:
         lock = os.path.join(self.parent, f".{os.path.basename(self.out)}.lock")
@@ -338,8 +354,10 @@ class OutputFolder:
                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "wall_s": round(time.perf_counter() - self._t0, 3),
                "inputs": [{"option": opt, "path": os.path.abspath(p), "sha256": sha256_of(p)} for opt, p in self.inputs],
                "machine": _machine(), **self.record, "warnings": list(self.warnings)}
-        with open(os.path.join(self.work, RECORD), "w") as fh:
-            json.dump(strict_json(rec), fh, indent=1, allow_nan=False)
+        rec = strict_json(rec)
+        with open(os.path.join(self.work, record_name(self.kind)), "w") as fh:
+            json.dump(rec, fh, indent=1, allow_nan=False)
+        self.last_record = rec
         if os.path.lexists(self.out):
             if os.path.islink(self.out) or not os.path.isdir(self.out):
                 raise InputError(f"{self.option} {self.given} appeared while this run wrote it; the result was not "

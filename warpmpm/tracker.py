@@ -23,8 +23,9 @@ the planes observed, combined over the series' planes (the last frame of each); 
 
 The ground truth, when there is one, is never read here.
 
-Per frame the tracker writes the estimated label map on the planning grid (same label values as the
-input), optionally the 3D displacement field (vector image, mm), and a row of ``track.csv``.
+Per frame the tracker writes a row of ``track.csv`` and hands the estimate to its outputs (:mod:`warpmpm.outputs`:
+the label map on the planning grid by default, the 3D displacement field, DICOM objects, the accumulated dose, a
+recording); the whole session (inputs checked, the output folder, ``track.json``) is :func:`warpmpm.session.track`.
 """
 
 from __future__ import annotations
@@ -330,21 +331,24 @@ class Tracker:
             row[f"max_{o}_mm"] = float(disp[m.organ_slice(o)].max()) if o in m.organs else ""
         return row
 
-    def run(self, out_dir: str, progress=None, recorder=None, dicom=None, dose=None, dose_weights=None) -> list[dict]:
-        """Track every frame, writing ``out_dir`` (module docstring); returns the CSV rows. ``recorder``
-        (e.g. :class:`viewer.recording.TrackRecorder`) gets ``on_frame(n, frame, positions_mm)`` and
-        is closed here (``ok=False`` when tracking fails). ``dicom`` (a :class:`warpmpm.dicom_rt.FrameDicomWriter`)
-        writes each frame's structure set and registration under ``out_dir/dicom``. ``dose`` (a
-        :class:`warpmpm.dose.DoseAccumulator`) takes each frame's field, weighted by ``dose_weights[n]`` (default 1),
-        and writes the DVHs under ``out_dir/dose``."""
+    def run(self, out_dir: str, progress=None, outputs=None) -> list[dict]:
+        """Track every frame, writing ``track.csv`` and ``particles.npz`` into ``out_dir`` and each of ``outputs``
+        (:mod:`warpmpm.outputs`; None: the label maps, and the displacement fields with :attr:`TrackerConfig.displacement`);
+        returns the CSV rows. Every output is closed here (``ok=False`` when tracking fails)."""
+        from .outputs import DisplacementFields, LabelMaps
+
+        if outputs is None:
+            outputs = [LabelMaps()] + ([DisplacementFields()] if self.config.displacement else [])
+        elif self.config.displacement and not any(o.name == "displacement" for o in outputs):
+            outputs = [*outputs, DisplacementFields()]
         ok = False
         try:
-            rows = self._run(out_dir, progress, recorder, dicom, dose, dose_weights)
+            rows = self._run(out_dir, progress, list(outputs))
             ok = True
             return rows
         finally:
-            if recorder is not None:
-                recorder.close(ok=ok)
+            for o in outputs:
+                o.close(ok)
 
     def field_quality(self, field_mm: np.ndarray) -> dict:
         """The smallest Jacobian determinant of ``x -> x + u(x)`` inside the planning organs, and how many of their
@@ -355,10 +359,11 @@ class Tracker:
         J = jacobian_determinant(field_mm, self.case.geometry)[inside]
         return {"field_jacobian_min": float(J.min()) if J.size else float("nan"), "field_folded_voxels": int(np.sum(J <= 0))}
 
-    def _run(self, out_dir: str, progress, recorder, dicom=None, dose=None, dose_weights=None) -> list[dict]:
-        os.makedirs(os.path.join(out_dir, "labels"), exist_ok=True)
-        if self.config.displacement:
-            os.makedirs(os.path.join(out_dir, "displacement"), exist_ok=True)
+    def _run(self, out_dir: str, progress, outputs) -> list[dict]:
+        os.makedirs(out_dir, exist_ok=True)
+        for o in outputs:
+            o.begin(self, out_dir)
+        field_needed = any(o.needs_field for o in outputs)
         rows, positions, propagated = [], [], []
         for n, frame in enumerate(self.frames):
             t0 = time.perf_counter()
@@ -367,20 +372,12 @@ class Tracker:
             rows.append(tf.row)
             positions.append(tf.positions_mm)
             propagated.append(self.propagated.copy())
-            if recorder is not None:
-                recorder.on_frame(n, frame, tf.positions_mm)
-            lab = self.case.geometry.apply_to(sitk.GetImageFromArray(self.labels_now.astype(np.uint8)))
-            _write_image(lab, os.path.join(out_dir, "labels", f"frame_{n:04d}.nii.gz"))
-            if self.config.displacement or dicom is not None or dose is not None:
-                field_img = displacement_field(self.model, tf.positions_mm, self.case)
-                field_mm = sitk.GetArrayFromImage(field_img)
+            field_mm = None
+            if field_needed:
+                field_mm = sitk.GetArrayFromImage(displacement_field(self.model, tf.positions_mm, self.case))
                 tf.row.update(self.field_quality(field_mm))
-                if self.config.displacement:
-                    _write_image(field_img, os.path.join(out_dir, "displacement", f"frame_{n:04d}.nii.gz"))
-                if dicom is not None:
-                    dicom.write(out_dir, n, self.labels_now, self.label_values, field_mm, frame.time_s)
-                if dose is not None:
-                    dose.add(field_mm, 1.0 if dose_weights is None else float(dose_weights[n]))
+            for o in outputs:
+                o.frame(self, out_dir, n, frame, tf.positions_mm, self.labels_now, field_mm)
             if progress:
                 unit = "Newton iterations" if tf.row["solver"] == "quasistatic" else "steps"
                 work = (f"{tf.row['solver']} {1e3 * tf.row['wall_s']:.0f} ms" if tf.row["solver"] in ("completion", "copy") else
@@ -388,8 +385,8 @@ class Tracker:
                 progress(f"frame {n}: plane {frame.plane}, {work}, {tf.row['latency_s'] * 1e3:.0f} ms "
                          f"(registration {tf.row['registration_ms']:.0f} ms, reference {tf.row['reference_ms']:.0f} ms), pancreas moved {tf.row['pancreas_shift_mm']:.2f} mm")
         _write_csv(os.path.join(out_dir, "track.csv"), rows, TRACK_FIELDS + ["latency_s"])
-        if dose is not None:
-            dose.write(os.path.join(out_dir, "dose"), len(self.frames))
+        for o in outputs:
+            o.end(self, out_dir, rows)
         tmp = os.path.join(out_dir, "particles.part.npz")
         np.savez_compressed(tmp, planning_mm=self.model.positions_mm, organ_index=self.model.organ_index,
                             organs=np.asarray(self.model.organs), estimate_mm=np.asarray(positions), propagate_mm=np.asarray(propagated))
@@ -427,12 +424,6 @@ def displacement_field(model: ParticleModel, positions_mm: np.ndarray, case: Cas
     f = np.zeros(tuple(g.size[::-1]) + (3,), dtype=np.float32)
     f[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]] = sm[..., 1:] * (w / np.maximum(d, 1e-6))[..., None]
     return g.apply_to(sitk.GetImageFromArray(f, isVector=True))
-
-
-def _write_image(img: sitk.Image, path: str) -> None:
-    tmp = path[: -len(".nii.gz")] + ".part.nii.gz"
-    sitk.WriteImage(img, tmp)
-    os.replace(tmp, path)
 
 
 def _write_csv(path: str, rows: list[dict], fields: list[str]) -> None:

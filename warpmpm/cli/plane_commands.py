@@ -19,7 +19,7 @@ def _planning_model(a):
 
     if a.rtstruct:
         from ..dicom_rt import case_from_rtstruct
-        from .track_commands import _structure_mapping
+        from ..session import structure_mapping as _structure_mapping
 
         if a.labels:
             raise InputError("give the organs once: --labels (a label map) or --rtstruct (a structure set), not both")

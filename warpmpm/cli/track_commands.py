@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import os
-import sys
 
 from ..errors import InputError
 
@@ -12,11 +11,9 @@ __all__ = ["cmd_estimators", "cmd_track", "cmd_make_cine", "cmd_make_truth", "cm
 
 
 def _planning_case(image, labels, preset):
-    from ..images import load_case
+    from ..session import planning_case
 
-    if labels is None or image is None:
-        raise InputError("--image and --labels are both needed (the planning image and its organ labels)")
-    return load_case(labels, image, preset)
+    return planning_case(image, labels, None, preset)
 
 
 def _point(text: str, option: str):
@@ -29,219 +26,31 @@ def _point(text: str, option: str):
     return p
 
 
-def _structure_mapping(items) -> dict[str, str]:
-    organs = ("pancreas", "stomach", "duodenum", "left_kidney")
-    out = {}
-    for item in items:
-        organ, sep, name = item.partition("=")
-        organ = organ.strip()
-        if not sep or not name.strip():
-            raise InputError(f"--structure {item!r}: write ORGAN=NAME, e.g. --structure pancreas=GTV_Panc")
-        if organ not in organs:
-            raise InputError(f"--structure {item!r}: the organ must be one of {', '.join(organs)}")
-        out[organ] = name.strip()
-    return out
-
-
-def _beam_on(path: str, n_frames: int) -> list[float]:
-    import csv
-
-    import numpy as np
-
-    if not os.path.isfile(path):
-        raise InputError(f"--beam-on file not found (or not a regular file): {path}")
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:  # a spreadsheet's byte-order mark is accepted
-            text = f.read()
-    except UnicodeDecodeError:
-        raise InputError(f"--beam-on {path} is not a text CSV (it is not UTF-8); save it as CSV with columns "
-                         "frame,beam_on_s") from None
-    if "\x00" in text:
-        raise InputError(f"--beam-on {path} is not a text CSV (it holds NUL bytes); save it as CSV with columns frame,beam_on_s")
-    weights = [None] * n_frames
-    reader = csv.DictReader(text.splitlines())
-    fields = [f.strip() for f in (reader.fieldnames or [])]
-    if not {"frame", "beam_on_s"} <= set(fields):
-        raise InputError(f"--beam-on {path}: columns frame,beam_on_s are required (it has {reader.fieldnames})")
-    reader.fieldnames = fields
-    for line, row in enumerate(reader, start=2):
-        try:
-            n, t = int(row["frame"]), float(row["beam_on_s"])
-        except (TypeError, ValueError):
-            raise InputError(f"--beam-on {path}, line {line}: frame must be an integer and beam_on_s a number") from None
-        if not 0 <= n < n_frames:
-            raise InputError(f"--beam-on {path}, line {line}: frame {n} is not one of the cine's {n_frames} frames (0-{n_frames - 1})")
-        if not (np.isfinite(t) and 0 <= t <= 3600.0):
-            raise InputError(f"--beam-on {path}, line {line}: beam_on_s {t} must be a number of seconds in 0..3600 (one "
-                             "frame's beam-on time, in seconds: mend that line)")
-        if weights[n] is not None:
-            raise InputError(f"--beam-on {path}, line {line}: frame {n} is given twice")
-        weights[n] = t
-    missing = [n for n, w in enumerate(weights) if w is None]
-    if missing:
-        raise InputError(f"--beam-on {path} gives no beam_on_s for frames {missing[:10]}{' ...' if len(missing) > 10 else ''}")
-    if sum(weights) <= 0:
-        raise InputError(f"--beam-on {path}: every frame's beam_on_s is 0: no frame carried dose")
-    return weights
-
-
-def _planning_reference(a, case):
-    """The planning series' reference (UIDs, patient) when the planning image is a DICOM series; None otherwise. Read
-    once and kept in ``case.meta["dicom"]`` (as a structure set's case already has it): the cine check, the dose check
-    and the DICOM writer all ask."""
-    from ..dicom_rt import read_series_reference
-
-    if "dicom" not in case.meta:
-        case.meta["dicom"] = read_series_reference(a.image) if os.path.isdir(a.image) else None
-    return case.meta["dicom"]
-
-
-def _check_same_patient(ref, what: str, path: str, frame_of_reference: str, patient: str, registered: bool) -> None:
-    """Refuse ``what`` (the cine, the dose) of another patient than the planning series, and on another frame of
-    reference unless the user says it is registered (then warn)."""
-    import warnings
-
-    from ..errors import InputWarning
-
-    if ref is None:
-        return
-    if patient and ref.patient_id and patient != ref.patient_id:
-        raise InputError(f"{what} {path} is of patient {patient!r}, the planning series {ref.patient_id!r}: another "
-                         "patient's files are never combined; check the export")
-    own_frame = "FrameOfReferenceUID" not in ref.extra.get("generated_uids", ())  # a series without one: nothing to check
-    if own_frame and frame_of_reference and ref.frame_of_reference_uid and frame_of_reference != ref.frame_of_reference_uid:
-        text = (f"{what} {path} is on frame of reference {frame_of_reference}, the planning series on "
-                f"{ref.frame_of_reference_uid}")
-        if not registered:
-            raise InputError(f"{text}: its coordinates are another scanner session's. Register it to the planning scan, "
-                             "or add --assume-registered if they are already in the planning scan's coordinates")
-        warnings.warn(f"{text}; taken as in the planning scan's coordinates (--assume-registered)", InputWarning, stacklevel=2)
-
-
-def _dicom_writer(case, a, work, frames=()):
-    """The planning series the DICOM outputs refer to: the user's (a DICOM --image), else the planning image written as one."""
-    from ..dicom_rt import FrameDicomWriter, write_series
-    from ..images import grid_differences
-
-    ref = _planning_reference(a, case)
-    if ref is not None:
-        diff = grid_differences(ref.geometry, case.geometry)
-        if diff:
-            raise InputError(f"--dicom: the DICOM series {a.image} is not on the planning grid ({'; '.join(diff)})")
-    else:
-        ref = write_series(case.intensity_image(), os.path.join(work, "dicom", "planning"), modality=a.modality)
-    names = case.meta.get("roi_names") or {}
-    cine_for = next((f.frame_of_reference for f in frames if getattr(f, "frame_of_reference", "")), None)
-    return FrameDicomWriter(ref, names, cine_for)
-
-
 def _arguments(a) -> dict:
     """The command's arguments, as recorded in the output folder's record file."""
     return {k: v for k, v in vars(a).items() if isinstance(v, (str, int, float, bool, type(None), list))}
 
 
 def cmd_track(a) -> int:
-    from ..cine import read_cine
-    from ..experiment.run import check_device
-
-    check_device(a.device)
-
-    bad = sorted(set(a.organs) - set("psdl"))
-    if bad or not a.organs:
-        raise InputError(f"--organs {a.organs!r}: letters from p (pancreas), s (stomach), d (duodenum), l (left kidney); "
-                         f"{', '.join(repr(b) for b in bad) or 'none given'} is not one")
-    if a.max_steps < 1:
-        raise InputError(f"--max-steps must be at least 1, got {a.max_steps}")
-    if a.rtstruct:
-        from ..dicom_rt import case_from_rtstruct
-
-        if a.labels:
-            raise InputError("give the organs once: --labels (a label map) or --rtstruct (a structure set), not both")
-        case = case_from_rtstruct(a.image, a.rtstruct, _structure_mapping(a.structure), a.organs)
-    else:
-        if a.structure:
-            raise InputError("--structure names structures of an --rtstruct; with --labels use --preset")
-        case = _planning_case(a.image, a.labels, a.preset)
-    from ..cine import is_trackrad, read_trackrad
-
-    if is_trackrad(a.cine):
-        frames = read_trackrad(a.cine, _point(a.trackrad_centre, "--trackrad-centre") if a.trackrad_centre else None)
-    else:
-        if a.trackrad_centre:
-            raise InputError(f"--trackrad-centre places a TrackRAD case; {a.cine} is not one (its frames carry their own position)")
-        frames = read_cine(a.cine)
-    ref = _planning_reference(a, case)
-    first = next((f for f in frames if f.frame_of_reference or f.patient), None)
-    if first is not None:
-        _check_same_patient(ref, "the cine", a.cine, first.frame_of_reference, first.patient, a.assume_registered)
-    from ..output_folder import OutputFolder
-
-    # checked and locked before any work: never an input, never a folder this tool did not write, one writer at a time
-    folder = OutputFolder(a.out, kind="track", overwrite=a.overwrite, record={"arguments": _arguments(a)},
-                          inputs=[("--image", a.image), ("--labels", a.labels), ("--rtstruct", a.rtstruct), ("--cine", a.cine),
-                                  ("--dose", a.dose), ("--beam-on", a.beam_on)])
-    try:
-        return _track_into(a, case, frames, folder)
-    finally:
-        folder.release()
-
-
-def _track_into(a, case, frames, folder) -> int:
+    """``warpmpm track``: the arguments parsed into :func:`warpmpm.session.track`."""
+    from ..session import track
     from ..solvers import SolverConfig
-    from ..tracker import Tracker, TrackerConfig
+    from ..tracker import TrackerConfig
 
     cfg = TrackerConfig(estimator=a.estimator, preset=None if a.rtstruct else a.preset,
-                        organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps, displacement=a.displacement,
+                        organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps,
                         predict=not a.no_predict, wait_settled=a.wait_settled, registration=a.registration,
                         registration_linear_prior=a.linear_prior, reference=a.reference,
                         solver=SolverConfig(device=a.device, method=a.solver, cpu_threads=a.threads))
-    dose, weights = None, None
-    if a.beam_on and not a.dose:
-        raise InputError("--beam-on weights the frames' dose: give --dose too")
-    if a.dose:
-        from ..dose import DoseAccumulator, read_dose
-
-        organs_wanted = [o for o, c in zip(("pancreas", "stomach", "duodenum", "left_kidney"), "psdl") if c in a.organs]
-        masks = {o: case.labels == v for o, v in case.label_map.items() if o in organs_wanted}
-        planned = read_dose(a.dose, a.max_dose_gy)
-        meta = {k: planned.GetMetaData(k) if planned.HasMetaDataKey(k) else "" for k in ("frame_of_reference", "patient")}
-        _check_same_patient(_planning_reference(a, case), "the dose", a.dose, meta["frame_of_reference"], meta["patient"],
-                            a.assume_registered)
-        dose = DoseAccumulator(planned, case.geometry, masks, warn_outside_pct=a.dose_coverage_warn)
-        weights = _beam_on(a.beam_on, len(frames)) if a.beam_on else None
-    tracker = Tracker(case, frames, cfg)
-    print(f"{len(frames)} frames on {len({f.plane for f in frames})} plane(s); model {tracker.model.n:,} particles "
-          f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes", file=sys.stderr)
-    if tracker.estimator.summary():
-        print(tracker.estimator.summary(), file=sys.stderr)
-    recorder = None
-    if a.rrd:
-        from ..errors import optional
-        from ..experiment.io import check_output_path
-
-        optional("rerun", "a Rerun recording (--rrd)")
-        from viewer.recording import TrackRecorder
-
-        recorder = TrackRecorder(check_output_path(a.rrd, "--rrd"), tracker.model)
-    # written into a folder beside --out and moved into place at the end: an interrupted or failed track leaves no
-    # half-written --out, and --overwrite replaces the old track whole (two tracks are never mixed)
-    with folder as work:
-        dicom = _dicom_writer(case, a, work, frames) if a.dicom else None
-        rows = tracker.run(work, progress=lambda t: print(t, flush=True), recorder=recorder, dicom=dicom, dose=dose,
-                           dose_weights=weights)
-        if dose is not None and dicom is not None:
-            import SimpleITK as sitk
-
-            from ..dicom_rt import write_rtdose
-
-            plan = dose.dose.GetMetaData("plan_uid") if dose.dose.HasMetaDataKey("plan_uid") else None
-            write_rtdose(os.path.join(work, "dicom", "RD_accumulated.dcm"), dicom.ref,
-                         sitk.GetArrayFromImage(dose.accumulated_image()), plan_uid=plan,
-                         description="warpmpm accumulated dose (organs only)")
-    import numpy as np
-
-    lat = np.array([r["latency_s"] for r in rows[1:]] or [rows[0]["latency_s"]])
-    print(f"latency per frame after the first: median {np.median(lat):.2f} s, p95 {np.percentile(lat, 95):.2f} s; wrote {a.out}")
+    outputs = ("labels", "displacement") if a.displacement else ("labels",)
+    res = track(a.image, a.cine, a.out, labels=a.labels, rtstruct=a.rtstruct, preset=a.preset, structures=a.structure,
+                config=cfg, outputs=outputs, dicom=a.dicom, modality=a.modality, dose=a.dose, beam_on=a.beam_on,
+                max_dose_gy=a.max_dose_gy, dose_coverage_warn_pct=a.dose_coverage_warn, rrd=a.rrd,
+                assume_registered=a.assume_registered,
+                trackrad_centre_mm=_point(a.trackrad_centre, "--trackrad-centre") if a.trackrad_centre else None,
+                overwrite=a.overwrite, progress=lambda t: print(t, flush=True), arguments=_arguments(a))
+    print(f"latency per frame after the first: median {res.latency_s['median']:.2f} s, p95 {res.latency_s['p95']:.2f} s; "
+          f"wrote {a.out}")
     return 0
 
 
