@@ -59,7 +59,7 @@ def frame(prep, gt, organs, step, ppc, th_d, device, legacy=False):
 def sweep_knobs(a, device):
     rows = []
     for step in [int(s) for s in a.steps.split(",")]:
-        base = CaseConfig(labels=a.labels, image=a.image, preset=a.preset, phantom_resolution=a.phantom_resolution,
+        base = CaseConfig(estimator="slice-driven", labels=a.labels, image=a.image, preset=a.preset, phantom_resolution=a.phantom_resolution,
                           particle_step=step, device=device)
         prep = prepare_case(base)
         gts = {d: paper_ground_truth(prep.full_model, d, centre_mm=prep.centre_mm, device=device)
@@ -112,7 +112,7 @@ def stream(a, device):
 
 
 def stream_one(a, device, method, threads=None):
-    prep = prepare_case(CaseConfig(labels=a.labels, image=a.image, preset=a.preset, phantom_resolution=a.phantom_resolution,
+    prep = prepare_case(CaseConfig(estimator="slice-driven", labels=a.labels, image=a.image, preset=a.preset, phantom_resolution=a.phantom_resolution,
                                    particle_step=int(a.steps.split(",")[0]), device=device))
     model = prep.full_model
     sl = prep.resolve_slices(model, None)

@@ -59,7 +59,7 @@ def table(a):
                 print(f"  the {loads.split('+', 1)[1]} load moves the pancreas {extra.mean():.2f} mm on average, "
                       f"{extra.max():.2f} mm at most, beyond breathing", flush=True)
             for label, planes in PLANES.items():
-                cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=path, targets="gt-inplane",
+                cfg = CaseConfig(estimator="slice-driven", image=img, labels=lab, preset=preset, protocol="field", truth_field=path, targets="gt-inplane",
                                  device="cpu", particle_step=2 if name == "phantom" else 1, baselines=("initial", "propagate", "rigid"))
                 cfg = replace(cfg, slices=slices_through_pancreas(cfg, planes))
                 out = run_case(cfg)

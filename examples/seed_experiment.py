@@ -12,4 +12,7 @@ See ``python examples/seed_experiment.py --help`` for every option. The main job
 from warpmpm.cli import run_main
 
 if __name__ == "__main__":
-    raise SystemExit(run_main())
+    import sys
+
+    # the seed's method is the estimate here (a later --estimator on the command line wins)
+    raise SystemExit(run_main(["--estimator", "slice-driven", *sys.argv[1:]]))

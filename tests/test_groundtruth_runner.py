@@ -115,7 +115,7 @@ def test_run_case_end_to_end_cli(tmp_path, capsys):
     code = main(["--phantom-resolution", "3", "--particle-step", "1", "--device", "cpu", "--json", str(out)])
     assert code == 0
     text = capsys.readouterr().out
-    assert "| estimate |" in text and "| volume_registration" in text  # the row may carry an "uncertain" mark
+    assert "| estimate (copy) |" in text and "| slice-driven |" in text and "| volume_registration" in text  # the row may carry an "uncertain" mark
     data = json.loads(out.read_text())
     for key in ("organs", "slices", "protocol", "deformation", "device", "n_particles", "results"):
         assert key in data

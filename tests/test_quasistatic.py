@@ -94,10 +94,11 @@ def test_run_reports_a_quasistatic_estimate_for_what_it_is(tmp_path, capsys):
 
     out = tmp_path / "o.json"
     code = run_main(["--phantom-resolution", "3", "--device", "cpu", "--quiet", "--solver", "quasistatic", "--protocol", "contact",
-                     "--no-volume-registration", "--json", str(out)])
+                     "--no-volume-registration", "--estimator", "slice-driven", "--json", str(out)])
     assert code == 0
     doc = json.loads(out.read_text())
     est = doc["results"]["estimate"]
+    assert doc["estimator"] == "slice-driven" and doc["results"]["slice-driven"] == est
     assert doc["solver"]["method"] == "quasistatic" and doc["gt"]["steps"] > 30  # the truth stays explicit
     assert est["steps"] <= QuasiStaticConfig().max_newton_iterations and est["linear_iterations"] > est["steps"]
     assert est["converged"] == est["settled"] and est["reason"] in ("settled", "max_iterations")

@@ -15,7 +15,8 @@ from viewer.recording import RerunRecorder
 
 def test_recording_holds_every_entity(tmp_path, tiny_model):
     path = tmp_path / "run.rrd"
-    out = run_case(CaseConfig(phantom_resolution=3.0, device="cpu", baselines=("initial",), max_steps=300), RerunRecorder(str(path)))
+    out = run_case(CaseConfig(phantom_resolution=3.0, device="cpu", baselines=("initial",), max_steps=300,
+                              estimator="slice-driven"), RerunRecorder(str(path)))
     s = summarize(str(path))
     counts = out.n_particles
     for organ, n in counts.items():

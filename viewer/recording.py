@@ -23,6 +23,8 @@ import json
 import numpy as np
 import rerun as rr
 
+from warpmpm.outputs import TrackOutput, register_output
+
 ORGAN_COLOURS = {"pancreas": (235, 170, 40), "stomach": (90, 160, 230), "duodenum": (120, 200, 110), "left_kidney": (170, 100, 220)}
 
 # 5-stop perceptual scale (dark blue -> teal -> green -> yellow), like viridis.
@@ -256,3 +258,29 @@ class TrackRecorder:
 
     def close(self, ok: bool = True) -> None:
         finish_recording(self.rec, self.tmp, self.path, ok)
+
+
+@register_output
+class RerunOutput(TrackOutput):
+    """A track's output (:mod:`warpmpm.outputs`): a Rerun recording of the planning model and every frame's estimate
+    (:class:`TrackRecorder`), written to ``path`` (outside the track folder; a failed track leaves none)."""
+
+    name = "rrd"
+    writes = "a Rerun recording (.rrd) of the planning model and every frame's estimate, mm, world LPS"
+
+    def __init__(self, path: str):
+        from warpmpm.experiment.io import check_output_path
+
+        self.path = check_output_path(path, "--rrd")
+        self.recorder = None
+
+    def begin(self, tracker, out_dir):
+        self.recorder = TrackRecorder(self.path, tracker.model)
+
+    def frame(self, tracker, out_dir, n, frame, positions_mm, labels, field_mm):
+        self.recorder.on_frame(n, frame, positions_mm)
+
+    def close(self, ok):
+        if self.recorder is not None:
+            self.recorder.close(ok=ok)
+            self.recorder = None

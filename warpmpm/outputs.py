@@ -8,7 +8,8 @@ estimate) and its record ``track.json``. The rest is chosen by the user, each an
 ``displacement``   ``displacement/frame_NNNN.nii.gz``: the 3D displacement field, mm, world LPS, planning grid
 ``dicom``          ``dicom/``: per frame an RTSTRUCT and a deformable REG on the planning series (``--dicom``)
 ``dose``           ``dose/``: the planned dose deformed by each frame's field, accumulated per organ (DVHs, ``--dose``)
-``rrd``            a Rerun recording of the frames (``--rrd``, the ``viewer`` extra)
+``rrd``            a Rerun recording of the frames (``--rrd``; :class:`viewer.recording.RerunOutput`, registered when
+                   the viewer is imported: the package never imports the viewer)
 =================  ==========================================================================================
 
 Adding one is a subclass with a ``name`` and :func:`register_output`; the session (:func:`warpmpm.session.track`)
@@ -26,7 +27,7 @@ import SimpleITK as sitk
 
 from .errors import InputError
 
-__all__ = ["OUTPUTS", "TrackOutput", "LabelMaps", "DisplacementFields", "DicomObjects", "AccumulatedDose", "RerunRecording",
+__all__ = ["OUTPUTS", "TrackOutput", "LabelMaps", "DisplacementFields", "DicomObjects", "AccumulatedDose",
            "make_outputs", "register_output", "write_image"]
 
 
@@ -157,38 +158,8 @@ class DicomObjects(TrackOutput):
                      sitk.GetArrayFromImage(acc.accumulated_image()), plan_uid=plan, description="warpmpm accumulated dose (organs only)")
 
 
-@register_output
-class RerunRecording(TrackOutput):
-    """A Rerun recording of the frames (``viewer.recording.TrackRecorder``; the ``viewer`` extra), written to ``path``
-    (outside the track folder; a failed track leaves none)."""
-
-    name = "rrd"
-    writes = "a Rerun recording (.rrd) of the planning model and every frame's estimate, mm, world LPS"
-
-    def __init__(self, path: str):
-        from .errors import optional
-        from .experiment.io import check_output_path
-
-        optional("rerun", "a Rerun recording (--rrd)")
-        self.path = check_output_path(path, "--rrd")
-        self.recorder = None
-
-    def begin(self, tracker, out_dir):
-        from viewer.recording import TrackRecorder
-
-        self.recorder = TrackRecorder(self.path, tracker.model)
-
-    def frame(self, tracker, out_dir, n, frame, positions_mm, labels, field_mm):
-        self.recorder.on_frame(n, frame, positions_mm)
-
-    def close(self, ok):
-        if self.recorder is not None:
-            self.recorder.close(ok=ok)
-            self.recorder = None
-
-
 #: the argument of :func:`warpmpm.session.track` that makes each output needing inputs
-_ARGUMENT = {"dose": "dose=PATH", "dicom": "dicom=True", "rrd": "rrd=PATH"}
+_ARGUMENT = {"dose": "dose=PATH", "dicom": "dicom=True", "rrd": "viewer.recording.RerunOutput(PATH) in outputs"}
 
 
 def make_outputs(items) -> list[TrackOutput]:

@@ -186,7 +186,7 @@ def _read_frames(cine, trackrad_centre_mm):
 
 def track(image, cine, out, *, labels=None, rtstruct=None, preset: str = "amos", structures=None, config=None,
           outputs=("labels",), dicom: bool = False, modality: str = "MR", dose=None, beam_on=None,
-          max_dose_gy: float = 120.0, dose_coverage_warn_pct: float = 1.0, rrd=None, assume_registered: bool = False,
+          max_dose_gy: float = 120.0, dose_coverage_warn_pct: float = 1.0, assume_registered: bool = False,
           trackrad_centre_mm=None, overwrite: bool = False, progress=None, arguments: dict | None = None) -> TrackResult:
     """Track a cine series against a labelled planning scan and write the results into the folder ``out``.
 
@@ -201,14 +201,13 @@ def track(image, cine, out, *, labels=None, rtstruct=None, preset: str = "amos",
         config: :class:`~warpmpm.tracker.TrackerConfig` (the estimator, the registration, the organs ...; default: the
             measured best).
         outputs: names of :data:`warpmpm.outputs.OUTPUTS` taking no inputs (``labels``, ``displacement``) or
-            :class:`~warpmpm.outputs.TrackOutput` instances; ``dicom``, ``dose`` and ``rrd`` are made from the arguments
-            of those names.
+            :class:`~warpmpm.outputs.TrackOutput` instances (a Rerun recording: ``viewer.recording.RerunOutput(PATH)``);
+            ``dicom`` and ``dose`` are made from the arguments of those names.
         dicom: per frame a DICOM RTSTRUCT and REG on the planning series (``modality``: of the series written when
             the planning image is not DICOM).
         dose: the planned dose (DICOM RT Dose or a volume in Gy) to accumulate per organ; ``beam_on``: a CSV of each
             frame's beam-on time (s); ``max_dose_gy``: a dose above is refused (cGy read as Gy);
             ``dose_coverage_warn_pct``: warn when more of an organ than this leaves the dose grid in a frame.
-        rrd: a Rerun recording to write (the ``viewer`` extra).
         assume_registered: accept a cine or dose on another frame of reference than the planning series (warned).
         trackrad_centre_mm: where a TrackRAD case's sagittal frames lie (world LPS, mm).
         progress: called with one line per frame (None: silent).
@@ -220,7 +219,7 @@ def track(image, cine, out, *, labels=None, rtstruct=None, preset: str = "amos",
     """
     from .experiment.run import check_device
     from .output_folder import OutputFolder
-    from .outputs import AccumulatedDose, DicomObjects, RerunRecording, make_outputs
+    from .outputs import AccumulatedDose, DicomObjects, make_outputs
     from .tracker import Tracker, TrackerConfig
 
     cfg = config or TrackerConfig()
@@ -232,7 +231,7 @@ def track(image, cine, out, *, labels=None, rtstruct=None, preset: str = "amos",
         raise InputError(f"--max-steps must be at least 1, got {cfg.max_steps}")
     if beam_on and not dose:
         raise InputError("--beam-on weights the frames' dose: give --dose too")
-    chosen = make_outputs([o for o in outputs if o not in ("dicom", "dose", "rrd")])
+    chosen = make_outputs([o for o in outputs if o not in ("dicom", "dose")])
     if rtstruct and cfg.preset is not None:
         cfg = replace(cfg, preset=None)  # a structure set's case knows its own labels
     case = planning_case(image, labels, rtstruct, preset, structures, cfg.organs)
@@ -244,7 +243,7 @@ def track(image, cine, out, *, labels=None, rtstruct=None, preset: str = "amos",
     call = arguments if arguments is not None else {
         "image": image, "cine": cine, "out": out, "labels": labels, "rtstruct": rtstruct, "preset": preset,
         "outputs": [o if isinstance(o, str) else o.name for o in outputs], "dicom": dicom, "dose": dose, "beam_on": beam_on,
-        "max_dose_gy": max_dose_gy, "dose_coverage_warn_pct": dose_coverage_warn_pct, "rrd": rrd,
+        "max_dose_gy": max_dose_gy, "dose_coverage_warn_pct": dose_coverage_warn_pct,
         "assume_registered": assume_registered, "overwrite": overwrite}
     # checked and locked before any work: never an input, never a folder this tool did not write, one writer at a time
     folder = OutputFolder(out, kind="track", overwrite=overwrite,
@@ -269,7 +268,7 @@ def track(image, cine, out, *, labels=None, rtstruct=None, preset: str = "amos",
             f"({tracker.model.letters}), {len(tracker.driven):,} on the frames' planes; estimator {cfg.estimator}")
         if tracker.estimator.summary():
             say(tracker.estimator.summary())
-        extra = [RerunRecording(rrd)] if rrd else []
+        extra = []
         # written into a folder beside `out` and moved into place at the end: an interrupted or failed track leaves
         # no half-written `out`, and `overwrite` replaces the old track whole (two tracks are never mixed)
         with folder as work:

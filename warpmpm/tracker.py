@@ -161,7 +161,10 @@ class TrackedFrame:
 class Tracker:
     """Follows a cine series frame after frame (module docstring)."""
 
-    def __init__(self, case: Case, frames: list[CineFrame], config: TrackerConfig | None = None):
+    def __init__(self, case: Case, frames: list[CineFrame], config: TrackerConfig | None = None,
+                 model: ParticleModel | None = None):
+        """``model``: the planning particle model when it is built already (``warpmpm run``'s ``cine`` targets track
+        the run's own model); None: built from ``case`` (:attr:`TrackerConfig.organs`, :attr:`~TrackerConfig.particle_step`)."""
         cfg = config or TrackerConfig()
         self.config, self.case, self.frames = cfg, case, frames
         if cfg.registration not in BACKENDS:
@@ -181,9 +184,11 @@ class Tracker:
                              "use it: drop them, or add --estimator slice-driven")
         if case.image is None:
             raise InputError("tracking needs the planning image (--image): the frames are registered against it, moved by the estimate")
-        present = [o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o])]
-        wanted = [o for o, c in zip(ORGANS, "psdl") if c in cfg.organs and o in present]
-        self.model: ParticleModel = build_model(case, tuple(wanted), sampling_step=cfg.particle_step)
+        if model is None:
+            present = [o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o])]
+            wanted = [o for o, c in zip(ORGANS, "psdl") if c in cfg.organs and o in present]
+            model = build_model(case, tuple(wanted), sampling_step=cfg.particle_step)
+        self.model: ParticleModel = model
         m = self.model
         self.label_values = {o: case.label_map[o] for o in m.organs}
         candidates: dict[int, tuple[CineFrame, np.ndarray]] = {}  # per plane: its first frame and its candidates
@@ -212,6 +217,8 @@ class Tracker:
         self.plane_positions: dict[int, np.ndarray] = {}
         self.plane_propagated: dict[int, np.ndarray] = {}
         self.plane_labels: dict[int, np.ndarray] = {}
+        #: the last frame's registration: (the whole slice's, {organ: its own}) results, None when it failed
+        self.last_registration = None
 
     def positions_mm(self) -> np.ndarray:
         """The current estimate: every particle's position (N, 3), mm, world LPS."""
@@ -243,6 +250,7 @@ class Tracker:
     def step(self, n: int, frame: CineFrame) -> TrackedFrame:
         """Estimate one frame (from the previous one's state)."""
         m = self.model
+        self.last_registration = None
         x = self.positions_mm()
         prev = self.last_frame.get(frame.plane)
         t_ref = time.perf_counter()
@@ -271,6 +279,7 @@ class Tracker:
                                  f"after registration over the organs, at least {MIN_FRAME_MATCH} needed): a blank, corrupt or "
                                  "foreign frame?", match=match)
         organ_of = np.asarray(m.organs)[m.organ_index]
+        self.last_registration = (whole, per_organ)
 
         def observed(now, then):
             """``now`` with its in-plane components replaced by where the frame's per-organ motion takes ``then``

@@ -44,7 +44,7 @@ def main(argv=None):
     print("|---|" + "---|" * (len(VARIANTS) + 1))
     for protocol, cases in (("paper", a.paper), ("contact", a.contact)):
         for d in [int(x) for x in cases.split(",") if x]:
-            cfg0 = CaseConfig(protocol=protocol, deformation=d, device="cpu", particle_step=2, targets="registration",
+            cfg0 = CaseConfig(estimator="slice-driven", protocol=protocol, deformation=d, device="cpu", particle_step=2, targets="registration",
                               baselines=("initial", "propagate"))
             prep = prepare_case(cfg0)
             gt = make_ground_truth(prep, cfg0)

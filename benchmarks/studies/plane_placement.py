@@ -75,7 +75,7 @@ def main():
         n = peak_frame(series)
         field = os.path.join(work, f"{name}_{n}.nii.gz")
         write_field(series.field(n), case.geometry, field)
-        cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=field, targets="gt-inplane",
+        cfg = CaseConfig(estimator="slice-driven", image=img, labels=lab, preset=preset, protocol="field", truth_field=field, targets="gt-inplane",
                          device="cpu", particle_step=2 if name == "phantom" else 1)
         prep = prepare_case(cfg)
         gt = make_ground_truth(prep, cfg)

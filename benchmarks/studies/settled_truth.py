@@ -34,13 +34,13 @@ def case_config(name: str, scenario: int, targets: str, max_steps: int) -> CaseC
     base = dict(protocol="contact", deformation=scenario, device="cpu", targets=targets, baselines=("initial", "propagate"),
                 gt_wait_settled=True, max_steps=max_steps)
     if name == "phantom":
-        return CaseConfig(particle_step=2, **base)
+        return CaseConfig(estimator="slice-driven", particle_step=2, **base)
     folder, preset = SAMPLES[name]
     labels, image = os.path.join(DATA, folder, "labels.nii.gz"), os.path.join(DATA, folder, "image.nii.gz")
     if not (os.path.exists(labels) and os.path.exists(image)):
         print(f"skipped {name}:{scenario}: sample data not found in {os.path.normpath(DATA)}", file=sys.stderr)
         return None
-    return CaseConfig(labels=labels, image=image, preset=preset, **base)
+    return CaseConfig(estimator="slice-driven", labels=labels, image=image, preset=preset, **base)
 
 
 def main(argv=None):

@@ -41,7 +41,7 @@ def mid_slices(prep, condition):
 
 def task(name, deformation, protocol, conditions, kinds, backends=("itk",), passes=(1,)):
     warnings.simplefilter("ignore")
-    cfg = CaseConfig(labels=os.path.join(DATA, name, "labels.nii.gz"), image=os.path.join(DATA, name, "image.nii.gz"), preset=name,
+    cfg = CaseConfig(estimator="slice-driven", labels=os.path.join(DATA, name, "labels.nii.gz"), image=os.path.join(DATA, name, "image.nii.gz"), preset=name,
                      protocol=protocol, deformation=deformation, device="cpu",
                      baselines=("initial", "propagate", "volume_registration"))
     prep = prepare_case(cfg)

@@ -19,11 +19,12 @@ def config_from_args(a):
     from ..solvers import ExplicitConfig, SolverConfig
 
     step = a.particle_step if a.particle_step is not None else (2 if a.labels is None else 1)
-    baselines = ("initial", "propagate", "rigid", "completion") + (() if a.no_volume_registration else ("volume_registration",))
+    baselines = ("initial", "propagate", "rigid", "completion", "slice-driven") + (
+        () if a.no_volume_registration else ("volume_registration",))
     protocol = "field" if a.truth_field is not None else a.protocol
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
-                      organs=a.organs, slices=a.slices, protocol=protocol, truth_field=a.truth_field, deformation=a.deformation, targets=a.targets, drive=a.drive,
-                      registration=a.registration, registration_passes=a.registration_passes, plane_check=not a.no_plane_check,
+                      estimator=a.estimator, organs=a.organs, slices=a.slices, protocol=protocol, truth_field=a.truth_field, deformation=a.deformation, targets=a.targets, drive=a.drive,
+                      cine_thickness_mm=a.cine_thickness_mm, registration=a.registration, registration_passes=a.registration_passes, plane_check=not a.no_plane_check,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
                       solver=SolverConfig(method=a.solver, cpu_threads=a.threads, explicit=ExplicitConfig(contact=a.contact, friction=a.friction)))
@@ -122,7 +123,7 @@ def cmd_sweep(a) -> int:
     cases, deformations = _tasks_common(a)
     combos = COMBINATIONS if a.organs == "all" else tuple(a.organs.split(","))
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
-    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device, targets=a.targets, drive=a.drive, max_steps=a.max_steps,
+    base = CaseConfig(estimator="slice-driven", particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device, targets=a.targets, drive=a.drive, max_steps=a.max_steps,
                       exclude_driven=True if a.exclude_driven else None)
     for combo in combos:
         replace(base, organs=combo)  # each combination checked before any task starts
@@ -181,7 +182,7 @@ def cmd_multi(a) -> int:
     d = os.path.dirname(os.path.abspath(a.out))
     if not os.path.isdir(d):
         raise InputError(f"output folder {d} for --out does not exist")
-    base = CaseConfig(particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device,
+    base = CaseConfig(estimator="slice-driven", particle_step=1 if a.particle_step is None else a.particle_step, lattice=a.lattice, device=a.device,
                       protocol=a.protocol)
     done = _resumable(a.out, lambda: multi_direction(cases, deformations, a.selector or DEFAULT_SELECTOR,
                                                      a.plane_selector or DEFAULT_PLANE_SELECTOR, a.out, base=base, top=a.top,

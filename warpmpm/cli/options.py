@@ -100,17 +100,25 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="contact protocol: simulate the ground truth until its whole body has settled (an elastic equilibrium; slow)")
     t.add_argument("--gt-contact", default=None, choices=["sticky", "sliding"], help="contact in the ground truth (default: --contact)")
     d = p.add_argument_group("what drives the estimate")
+    d.add_argument("--estimator", default=_experiment_default("estimator"), choices=["copy", "slice-driven"],
+                   help="which estimator is results.estimate (both are scored, each under its own name): copy, each organ "
+                   "moved by the motion the planes show of it (default: the measured best); slice-driven, the seed's MPM "
+                   "(examples/seed_experiment.py reproduces the paper with it)")
     d.add_argument("--organs", default="psdl", help="organ combination: p, ps, pd, pl, psd, psl, pdl, psdl")
     d.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); "
                    "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
                    "'auto:asc': psdl, that axial slice plus the best sagittal and/or coronal slice; default: mid-pancreas axial")
     d.add_argument("--targets", default=_experiment_default("targets"), choices=["affine", "registration-demons", "registration",
                                                                                    "gt", "gt-inplane", "registration-affine",
-                                                                                   "registration-bspline"],
+                                                                                   "registration-bspline", "cine"],
                    help="slice motion: an affine fitted to the truth on each slice (the seed's protocol; default %(default)s), "
+                   "'cine': the planes imaged as cine frames (--cine-thickness-mm) and followed by the tracker's own frame "
+                   "pipeline (what `warpmpm track` gives for them), "
                    "organ-aware registration of the captured slices refined organ by organ by demons fields (what images give), "
                    "the organ-aware affines alone, the truth's 3D positions (upper bound), its in-plane part (the ceiling of 2D "
                    "registration), one registered affine per slice, or a registered B-spline field")
+    d.add_argument("--cine-thickness-mm", type=float, default=_experiment_default("cine_thickness_mm"),
+                   help="--targets cine: the captured planes' slice thickness, mm (default %(default)s)")
     d.add_argument("--registration", default=_experiment_default("registration"), choices=list(BACKENDS),
                    help="the slice registration's optimiser (registration targets): ITK's gradient descent or Gauss-Newton, "
                    "the same correlation metric")

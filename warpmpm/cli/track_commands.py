@@ -42,10 +42,17 @@ def cmd_track(a) -> int:
                         predict=not a.no_predict, wait_settled=a.wait_settled, registration=a.registration,
                         registration_linear_prior=a.linear_prior, reference=a.reference,
                         solver=SolverConfig(device=a.device, method=a.solver, cpu_threads=a.threads))
-    outputs = ("labels", "displacement") if a.displacement else ("labels",)
+    outputs = ["labels", "displacement"] if a.displacement else ["labels"]
+    if a.rrd:
+        from ..errors import optional
+
+        optional("rerun", "a Rerun recording (--rrd)")
+        from viewer.recording import RerunOutput
+
+        outputs.append(RerunOutput(a.rrd))
     res = track(a.image, a.cine, a.out, labels=a.labels, rtstruct=a.rtstruct, preset=a.preset, structures=a.structure,
                 config=cfg, outputs=outputs, dicom=a.dicom, modality=a.modality, dose=a.dose, beam_on=a.beam_on,
-                max_dose_gy=a.max_dose_gy, dose_coverage_warn_pct=a.dose_coverage_warn, rrd=a.rrd,
+                max_dose_gy=a.max_dose_gy, dose_coverage_warn_pct=a.dose_coverage_warn,
                 assume_registered=a.assume_registered,
                 trackrad_centre_mm=_point(a.trackrad_centre, "--trackrad-centre") if a.trackrad_centre else None,
                 overwrite=a.overwrite, progress=lambda t: print(t, flush=True), arguments=_arguments(a))

@@ -18,20 +18,22 @@ from ..images import PRESETS, parse_organs
 from ..slices import parse_slices
 from ..solvers import SolverConfig
 
-__all__ = ["Protocol", "TargetKind", "DriveMode", "Lattice", "Baseline", "PROTOCOLS", "TARGET_KINDS", "DRIVE_MODES",
-           "BASELINES", "AUTO_MODES", "MAX_SEED", "CaseConfig"]
+__all__ = ["Protocol", "TargetKind", "DriveMode", "Lattice", "Baseline", "RunEstimator", "PROTOCOLS", "TARGET_KINDS",
+           "DRIVE_MODES", "BASELINES", "RUN_ESTIMATORS", "AUTO_MODES", "MAX_SEED", "CaseConfig"]
 
 Protocol = Literal["paper", "contact", "field"]
 TargetKind = Literal["affine", "gt", "gt-inplane", "registration", "registration-affine", "registration-bspline",
-                     "registration-demons"]
+                     "registration-demons", "cine"]
 DriveMode = Literal["inplane", "pinned"]
 Lattice = Literal["auto", "voxel", "isotropic"]
-Baseline = Literal["initial", "propagate", "rigid", "volume_registration", "completion"]
+Baseline = Literal["initial", "propagate", "rigid", "volume_registration", "completion", "slice-driven"]
+RunEstimator = Literal["copy", "slice-driven"]
 
 PROTOCOLS: tuple[str, ...] = get_args(Protocol)
 TARGET_KINDS: tuple[str, ...] = get_args(TargetKind)
 DRIVE_MODES: tuple[str, ...] = get_args(DriveMode)
 BASELINES: tuple[str, ...] = get_args(Baseline)
+RUN_ESTIMATORS: tuple[str, ...] = get_args(RunEstimator)
 
 #: ``--slices`` values that ask the selection models for the condition (see :mod:`warpmpm.experiment.auto`).
 AUTO_MODES = {"auto": "a", "auto:a": "a", "auto:ac": "ac", "auto:as": "as", "auto:asc": "asc"}
@@ -76,6 +78,8 @@ class CaseConfig:
     fitted to the GT, the GT's 3D positions (an upper bound no image gives), their in-plane part (the
     ceiling of any 2D registration), or registration of synthetic captured slices (organ-aware, or one
     affine per slice)."""
+    cine_thickness_mm: float = 6.0
+    """``cine`` targets: the slice thickness (mm) of the captured planes (an MR-Linac's cine: 5-7 mm)."""
     registration: Literal["itk", "gauss-newton"] = "itk"
     """The slice registration's optimiser for the ``registration*`` targets
     (:func:`warpmpm.registration.register_slices`): ITK's gradient descent or Gauss-Newton, the same correlation
@@ -110,8 +114,17 @@ class CaseConfig:
     wait_settled: bool = False
     """Run each estimate on until the whole model has settled, not only the driven slice
     (:class:`~warpmpm.driving.ConvergenceConfig`)."""
-    baselines: tuple[Baseline, ...] = ("initial", "propagate", "rigid", "volume_registration", "completion")
-    """Baselines scored beside the estimate."""
+    estimator: RunEstimator = "copy"
+    """Which registered estimator (:mod:`warpmpm.estimators`) is ``results.estimate``; each also appears under its own
+    name. ``copy`` (default): every organ the planes measured moved by the in-plane motion they show of it (combined over
+    the planes), an organ they do not measure by the whole slice's; the measured best: on an independent finite-element
+    truth the seed's slice-driven MPM was 1.9-11x the copy's error on every seen organ (31 of 31 organ-runs, true
+    in-plane motion given) and the tracker's MPM ends on the copy on every series measured
+    (``docs/decisions/2026-12-04-estimators.md``). ``slice-driven``: the seed's MPM driven at the planes' particles, to
+    reproduce the paper (``examples/seed_experiment.py``, the sweeps)."""
+    baselines: tuple[Baseline, ...] = ("initial", "propagate", "rigid", "volume_registration", "completion", "slice-driven")
+    """Baselines scored beside the estimate (``slice-driven``: the seed's MPM under its own name when it is not the
+    estimate)."""
     exclude_driven: bool | None = False
     """Leave the driven particles out of ``error_mm``, p95 and Dice. Default False: every particle of the organ is
     scored, whatever the number of planes (``error_offslice_mm`` always leaves the driven ones out: both are reported).
@@ -174,6 +187,9 @@ class CaseConfig:
             raise InputError(f"the contact scenario number (--deformation) must be in 1..10000, got {self.deformation}")
         if self.drive not in DRIVE_MODES:
             raise InputError(f"unknown drive mode {self.drive!r}; use {' or '.join(DRIVE_MODES)}")
+        if not (isinstance(self.cine_thickness_mm, (int, float)) and math.isfinite(self.cine_thickness_mm)
+                and 0.5 <= self.cine_thickness_mm <= 30):
+            raise InputError(f"--cine-thickness-mm must be a finite number in 0.5..30, got {self.cine_thickness_mm!r}")
         if self.targets not in TARGET_KINDS:
             raise InputError(f"unknown targets {self.targets!r}; use {', '.join(TARGET_KINDS)}")
         if self.device is not None and self.device != "cpu" and not str(self.device).startswith("cuda"):
@@ -189,6 +205,9 @@ class CaseConfig:
             raise InputError(f"unknown ground-truth contact {self.gt_contact!r}; use sticky or sliding")
         if not _is_int(self.max_steps) or self.max_steps < 1:
             raise InputError(f"max steps must be an integer >= 1, got {self.max_steps!r}")
+        if self.estimator not in RUN_ESTIMATORS:
+            raise InputError(f"unknown estimator {self.estimator!r} for a run; use {' or '.join(RUN_ESTIMATORS)} (the "
+                             "completion is the baseline 'completion')")
         bad = [b for b in self.baselines if b not in BASELINES]
         if bad:
             raise InputError(f"unknown baseline(s) {bad}; use {', '.join(BASELINES)}")

@@ -97,7 +97,7 @@ def field_run(img: str, lab: str, preset: str, field_path: str, case_name: str, 
     from .target_kinds import run_targets
     from .truth import gt_for_model, make_ground_truth
 
-    cfg = CaseConfig(image=img, labels=lab, preset=preset, protocol="field", truth_field=field_path, targets="gt-inplane",
+    cfg = CaseConfig(estimator="slice-driven", image=img, labels=lab, preset=preset, protocol="field", truth_field=field_path, targets="gt-inplane",
                      device="cpu", particle_step=2 if case_name == "phantom" else 1)
     cfg = dataclasses.replace(cfg, slices=slices_through_pancreas(cfg, PLANES[planes]))
     prep = prepare_case(cfg)

@@ -87,7 +87,7 @@ def multi_direction(cases: list[dict], deformations, selector_path: str, plane_s
     (finished (case, deformation) pairs are skipped). Returns every row and the failed tasks."""
     for path in (selector_path, plane_selector_path):
         ConditionSelector.load(path)  # fail early, naming the missing model
-    base = base or CaseConfig()
+    base = base or CaseConfig(estimator="slice-driven")
     with CsvAppender(out_csv, MULTI_FIELDS, ("case",), "multi-direction CSV",
                      "resume a CSV of `warpmpm multi`, or name a new --out") as out:
         rows = read_rows(out_csv)

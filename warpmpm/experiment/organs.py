@@ -148,8 +148,14 @@ def format_organ_table(results: dict) -> str:
     pancreas distance error."""
     rows = ["| method | organ | seen | error mm | on plane mm | off plane mm | p95 mm | SI error mm | distance to pancreas: est / true mm |",
             "|---|---|---|---|---|---|---|---|---|"]
+    est = results.get("estimate")
+    chosen = next((n for n, r in results.items() if r is est and n != "estimate"), None)
     for name, r in results.items():
+        if r is est and name != "estimate":
+            continue  # the estimator that is the estimate: one row, named on the estimate's
         organs = getattr(r, "organs", None) or {}
+        if name == "estimate" and chosen:
+            name = f"estimate ({chosen})"
         for o, s in organs.items():
             dist = (f"{s['distance_to_pancreas_mm']:.1f} / {s['true_distance_to_pancreas_mm']:.1f}"
                     if "distance_to_pancreas_mm" in s else "")

@@ -97,7 +97,8 @@ class RunResult:
         registration: the slice registration's own error and time (the registration target kinds).
         drive: ``inplane``, ``pinned`` or ``3d`` (GT targets). target_in_plane_error_mm: in-plane distance
         of the slices' pancreas targets to their true positions.
-        positions_mm: the estimate's final particle positions (N, 3), not written to JSON.
+        positions_mm: the estimate's final particle positions (N, 3), not written to JSON. solver, gains, device: the
+        slice-driven MPM's (empty when it did not run).
         total_wall_s, selection: filled by :func:`run_case` and the CLI.
     """
 
@@ -121,6 +122,9 @@ class RunResult:
     target_in_plane_error_mm: float = float("nan")
     total_wall_s: float | None = None
     selection: dict | None = None
+    estimator: str = "slice-driven"
+    """Which estimator ``results["estimate"]`` is (:attr:`~warpmpm.experiment.config.CaseConfig.estimator`); each
+    estimator run is also under its own name (``copy``, ``slice-driven``)."""
 
     @property
     def estimate(self) -> EstimateScores:

@@ -78,11 +78,12 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
     if "initial" in cfg.baselines:
         results["initial"] = score(model.positions_mm)
     if "propagate" in cfg.baselines:  # the first slice's motion, as the estimate gets it (per organ when organ-aware)
-        copy_mm = propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]),
-                            tg.fields.get(slices[0]), tg.organ_fields.get(slices[0]))
+        copy_mm = tg.first_plane_mm if tg.first_plane_mm is not None else propagate(
+            model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]), tg.fields.get(slices[0]),
+            tg.organ_fields.get(slices[0]))
         results["propagate"] = score(copy_mm)
         copies["propagate"] = copy_mm
-        if tg.organ_affines.get(slices[0]) or tg.fields.get(slices[0]) or tg.organ_fields.get(slices[0]):
+        if tg.first_plane_mm is None and (tg.organ_affines.get(slices[0]) or tg.fields.get(slices[0]) or tg.organ_fields.get(slices[0])):
             results["propagate_affine"] = score(propagate(model, slices[0], tg.affines[0], prep.centre_mm))
     if "propagate" in cfg.baselines and tg.combined_mm is not None:  # every plane's motion, combined, copied to the body
         results["propagate_planes"] = score(tg.combined_mm)
@@ -104,8 +105,9 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         if tg.combined_mm is not None:
             copy_mm = tg.combined_mm
         elif copy_mm is None:
-            copy_mm = propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]),
-                                tg.fields.get(slices[0]), tg.organ_fields.get(slices[0]))
+            copy_mm = tg.first_plane_mm if tg.first_plane_mm is not None else propagate(
+                model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]), tg.fields.get(slices[0]),
+                tg.organ_fields.get(slices[0]))
         t0 = time.perf_counter()
         cm = CompletionModel(prep.case, cfg.preset, model, device=cfg.device)
         c = complete(cm, idx, targets, tg.drive.axes if cfg.targets != "gt" else None, copy_mm)
@@ -118,28 +120,20 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
         results["volume_registration"] = score(pos, **info)
     recorder.begin(model, gt_pos)
     recorder.log_slices(slices, idx, targets, prep.case, prep.centre_mm)
-    def on_step(estimator, step, rel, rms):
-        recorder.on_step(estimator, step, rel, rms)
-        progress.step("estimate", step, rms, cfg.max_steps)
-
-    est = SliceDrivenEstimator(model, slices, driven=idx, solver_config=replace(cfg.solver, device=cfg.device),
-                               convergence=ConvergenceConfig(max_steps=cfg.max_steps, wait_settled=cfg.wait_settled),
-                               extra_points_mm=np.vstack([targets, gt_pos]), callback=on_step)
-    progress.say(f"estimate: {len(idx):,} particles driven on {', '.join(str(prep.to_input(s)) for s in slices)}, "
-                 f"cell {est.mpm.dx_mm:.2f} mm, grid {'x'.join(map(str, est.mpm.grid_shape))}")
-    if len(idx):
-        res = est.estimate(targets, axes=axes)
-    else:  # the plane check dropped every plane's motion: nothing is driven, the estimate is no motion
-        res = DriveResult(model.positions_mm.copy(), 0, 0.0, np.zeros(0), np.zeros(0), True,
-                          "nothing driven (no plane passed the plane check)", settled=True, body_motion_mm=0.0, min_det_f=1.0)
-    progress.done(f"estimate: {res.steps} steps in {res.wall_s:.1f} s ({res.reason})")
-    if res.converged and not res.settled:  # the driven slice stopped; the body had not: not an equilibrium
-        warnings.warn(f"estimate: the driven particles met the stopping rule ({res.reason}) but the model was still moving "
-                      f"({res.body_motion_mm:.2f} mm at the 99th percentile): reported not converged (--wait-settled runs on "
-                      "until it settles)", InputWarning, stacklevel=2)
-    match, unmoved, flag = float("nan"), float("nan"), ""
-    if tg.plane_match is not None:  # the estimate's own measure: the captured planes against it rendered on them
-        match, unmoved = tg.plane_match(res.positions_mm), tg.plane_match(None)
+    if tg.combined_mm is not None:  # the copy's observation: every plane's motion combined, or the one plane's, by organ
+        copy_mm = tg.combined_mm
+    elif copy_mm is None:
+        copy_mm = propagate(model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]),
+                            tg.fields.get(slices[0]), tg.organ_fields.get(slices[0]))
+    results["copy"] = _copy_estimate(prep, model, tg, idx, copy_mm, score)
+    positions = {"copy": results["copy"].info.pop("positions_mm")}
+    mpm = None
+    if cfg.estimator == "slice-driven" or "slice-driven" in cfg.baselines:
+        mpm, positions["slice-driven"] = _slice_driven(prep, model, slices, tg, idx, targets, axes, gt_pos, cfg, recorder, progress,
+                                                       pmask, geom, excl, offslice_error, on_plane, truth_d)
+        results["slice-driven"] = mpm
+    if tg.plane_match is not None:  # each estimate's own measure: the captured planes against it rendered on them
+        unmoved = tg.plane_match(None)
         for name, pos in copies.items():  # the copies of the planes' motion, by the same measure
             m_copy = tg.plane_match(pos)
             results[name].info["plane_match"] = m_copy
@@ -147,31 +141,83 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
                 results[name].info["worse_than_no_motion"] = True
                 warnings.warn(f"{name}: the copied motion matches the captured planes worse than no motion (mean correlation "
                               f"{m_copy:.3f} against {unmoved:.3f} unmoved)", InputWarning, stacklevel=2)
-        if not len(idx):
-            flag = "no plane's motion passed the plane check: the estimate is no motion"
-        elif match < unmoved - 0.005:
-            flag = (f"worse than no motion by its own measure: the captured planes match it rendered on them with mean "
-                    f"correlation {match:.3f}, the unmoved planning image {unmoved:.3f}")
-        if flag:
-            warnings.warn(f"estimate: {flag}", InputWarning, stacklevel=2)
+        for name, pos in positions.items():
+            est = results[name]
+            est.plane_match, est.plane_match_unmoved = tg.plane_match(pos), unmoved
+            if not len(idx):
+                est.flag = "no plane's motion passed the plane check: the estimate is no motion"
+            elif est.plane_match < unmoved - 0.005:
+                est.flag = (f"worse than no motion by its own measure: the captured planes match it rendered on them with mean "
+                            f"correlation {est.plane_match:.3f}, the unmoved planning image {unmoved:.3f}")
+            if est.flag and name == cfg.estimator:
+                warnings.warn(f"estimate ({name}): {est.flag}", InputWarning, stacklevel=2)
+    results["estimate"] = results[cfg.estimator]
+    solver, gains, device = ({}, None, "cpu") if mpm is None else (mpm.info.pop(k) for k in ("solver", "gains", "device"))
+    out = RunResult(
+        case=prep.case.name, organs=model.letters, slices=[str(prep.to_input(s)) for s in slices], protocol=cfg.protocol,
+        deformation=cfg.deformation, targets=cfg.targets, device=device, n_particles=model.counts(), n_driven=int(len(idx)),
+        excluded_driven=bool(exclude_driven), solver=solver, gains=gains,
+        gt={k: v for k, v in gt.params.items() if k not in ("A",)} | {"steps": gt.steps, "wall_s": gt.wall_s},
+        results=results, registration=tg.registration, positions_mm=positions[cfg.estimator],
+        drive=cfg.drive if cfg.targets != "gt" else "3d", target_in_plane_error_mm=tg.in_plane_error_mm, estimator=cfg.estimator)
+    recorder.log_result(positions[cfg.estimator], mpm.steps if mpm is not None else 0, out.to_json(), format_table(out))
+    return out
+
+
+def _copy_estimate(prep, model, tg, idx, copy_mm, score) -> EstimateScores:
+    """The ``copy`` estimator (:class:`warpmpm.estimators.copying.CopyEstimator`) on the run's observation: every particle
+    where the planes' observed motion puts it (each organ a plane measured by its own motion, the others by the whole
+    slice's). The positions ride in ``info["positions_mm"]`` (taken out before the JSON)."""
+    from ..estimators import FrameObservation, get_estimator
+
+    t0 = time.perf_counter()
+    measured = tuple(sorted({o for d in tg.organ_affines.values() for o in d} | {o for d in tg.organ_fields.values() for o in d}))
+    on = np.zeros(len(idx), dtype=bool) if not len(idx) else np.ones(len(idx), dtype=bool)
+    est = get_estimator("copy")(model, prep.case, [], np.asarray(idx), None)
+    res = est.estimate(FrameObservation(None, model.positions_mm.copy(), np.asarray(copy_mm, dtype=np.float64), on, measured))
+    wall = time.perf_counter() - t0
+    m = score(res.positions_mm)
+    return EstimateScores(
+        error_mm=m.error_mm, p95_mm=m.p95_mm, max_mm=m.max_mm, dice=m.dice, n=m.n, error_offslice_mm=m.error_offslice_mm,
+        steps=0, wall_s=wall, converged=True, slice_converged=True, reason=res.solve["reason"], rms_residual_mm=0.0,
+        rel_residual=0.0, ms_per_step=0.0, settled=True, body_motion_mm=0.0, min_det_f=float("nan"), finished_by="copy",
+        organs=m.organs, info={"positions_mm": res.positions_mm, "measured_organs": list(measured)})
+
+
+def _slice_driven(prep, model, slices, tg, idx, targets, axes, gt_pos, cfg, recorder, progress, pmask, geom, excl,
+                  offslice_error, on_plane, truth_d):
+    """The seed's slice-driven MPM (:class:`warpmpm.driving.SliceDrivenEstimator`) driven at the planes' particles to
+    the run's targets: its scores (the solver's summary, gains and device in ``info``) and its positions."""
+    def on_step(estimator, step, rel, rms):
+        recorder.on_step(estimator, step, rel, rms)
+        progress.step("slice-driven", step, rms, cfg.max_steps)
+
+    est = SliceDrivenEstimator(model, slices, driven=idx, solver_config=replace(cfg.solver, device=cfg.device),
+                               convergence=ConvergenceConfig(max_steps=cfg.max_steps, wait_settled=cfg.wait_settled),
+                               extra_points_mm=np.vstack([targets, gt_pos]), callback=on_step)
+    progress.say(f"slice-driven: {len(idx):,} particles driven on {', '.join(str(prep.to_input(s)) for s in slices)}, "
+                 f"cell {est.mpm.dx_mm:.2f} mm, grid {'x'.join(map(str, est.mpm.grid_shape))}")
+    if len(idx):
+        res = est.estimate(targets, axes=axes)
+    else:  # the plane check dropped every plane's motion: nothing is driven, the estimate is no motion
+        res = DriveResult(model.positions_mm.copy(), 0, 0.0, np.zeros(0), np.zeros(0), True,
+                          "nothing driven (no plane passed the plane check)", settled=True, body_motion_mm=0.0, min_det_f=1.0)
+    progress.done(f"slice-driven: {res.steps} steps in {res.wall_s:.1f} s ({res.reason})")
+    if res.converged and not res.settled:  # the driven slice stopped; the body had not: not an equilibrium
+        warnings.warn(f"slice-driven: the driven particles met the stopping rule ({res.reason}) but the model was still moving "
+                      f"({res.body_motion_mm:.2f} mm at the 99th percentile): reported not converged (--wait-settled runs on "
+                      "until it settles)", InputWarning, stacklevel=3)
     m = evaluate(res.positions_mm[pmask], gt_pos[pmask], geom, excl[pmask], model.sampling_step)
-    results["estimate"] = EstimateScores(
+    scores = EstimateScores(
         **{k: m[k] for k in ("error_mm", "p95_mm", "max_mm", "dice", "n")}, error_offslice_mm=offslice_error(res.positions_mm),
         steps=res.steps, wall_s=res.wall_s, converged=bool(res.converged and res.settled), slice_converged=bool(res.converged),
         reason=res.reason,
         rms_residual_mm=res.final_rms_mm, rel_residual=res.final_rel_residual, ms_per_step=1e3 * res.wall_s / max(res.steps, 1),
         settled=res.settled, body_motion_mm=res.body_motion_mm, min_det_f=res.min_det_f,
-        linear_iterations=res.linear_iterations, finished_by=res.method, plane_match=match, plane_match_unmoved=unmoved, flag=flag,
+        linear_iterations=res.linear_iterations, finished_by=res.method,
         organs=organ_scores(model, res.positions_mm, gt_pos, on_plane, truth_distances=truth_d))
-    out = RunResult(
-        case=prep.case.name, organs=model.letters, slices=[str(prep.to_input(s)) for s in slices], protocol=cfg.protocol,
-        deformation=cfg.deformation, targets=cfg.targets, device=str(est.mpm.device), n_particles=model.counts(),
-        n_driven=int(len(idx)), excluded_driven=bool(exclude_driven), solver=est.mpm.summary(), gains=res.gains.to_json() if res.gains else None,
-        gt={k: v for k, v in gt.params.items() if k not in ("A",)} | {"steps": gt.steps, "wall_s": gt.wall_s},
-        results=results, registration=tg.registration, positions_mm=res.positions_mm, drive=cfg.drive if cfg.targets != "gt" else "3d",
-        target_in_plane_error_mm=tg.in_plane_error_mm)
-    recorder.log_result(res.positions_mm, res.steps, out.to_json(), format_table(out))
-    return out
+    scores.info = {"solver": est.mpm.summary(), "gains": res.gains.to_json() if res.gains else None, "device": str(est.mpm.device)}
+    return scores, res.positions_mm
 
 
 def check_device(device: str | None) -> None:

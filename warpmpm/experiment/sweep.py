@@ -114,7 +114,7 @@ def sweep(cases: list[dict], deformations, combinations, orientations=("axial",)
     scheduler address (``tcp://host:8786``). Rows are written here as tasks finish.
     Returns every row (old and new) and the failed tasks.
     """
-    base = base or CaseConfig()
+    base = base or CaseConfig(estimator="slice-driven")
     for d in deformations:  # every deformation is checked before any task starts
         replace(base, protocol=protocol, deformation=int(d))
     with CsvAppender(out_csv, SWEEP_FIELDS, ("case", "protocol", "deformation", "organs", "orientation", "slice"), "sweep CSV",

@@ -22,21 +22,23 @@ MULTI_NAMES = {"a": "axial only", "ac": "axial + coronal", "as": "axial + sagitt
 def format_table(out: RunResult) -> str:
     """The run's table: each baseline and the estimate with error, p95, Dice (and steps, time)."""
     rows = ["| method | error mm (all particles) | off-slice error mm (driven left out) | p95 mm | Dice | steps | wall s |", "|---|---|---|---|---|---|---|"]
-    for name in ("initial", "propagate", "propagate_affine", "propagate_planes", "rigid", "volume_registration", "completion", "estimate"):
+    names = ("initial", "propagate", "propagate_affine", "propagate_planes", "rigid", "volume_registration", "completion", "copy",
+             "slice-driven", "estimate")
+    for name in names:
         r = out.results.get(name)
-        if r is None:
-            continue
+        if r is None or (name == out.estimator and "estimate" in out.results):
+            continue  # the estimate's own row says which estimator it is
         j = r.to_json()
         steps = str(j.get("steps", ""))
         wall = f"{j['wall_s']:.2f}" if "wall_s" in j else ""
-        label = name
+        label = f"estimate ({out.estimator})" if name == "estimate" else name
         if j.get("worse_than_no_motion"):
             label += " (FLAGGED: matches the planes worse than no motion)"
         elif j.get("fallback_to_identity"):
             label += " (FAILED: fell back to no motion)"
         elif name == "completion" and not j.get("converged", True):
             label += f" (NOT converged: residual {j['residual']:.1e})"
-        elif name == "estimate" and j.get("flag"):
+        elif name in ("estimate", "copy", "slice-driven") and j.get("flag"):
             label += " (FLAGGED: worse than no motion by its own measure)" if "worse" in j["flag"] else " (nothing driven)"
         elif j.get("uncertain"):
             label += f" (uncertain: two registrations disagree by {j['disagreement_mm']:.1f} mm)"
@@ -45,19 +47,23 @@ def format_table(out: RunResult) -> str:
              f"protocol {out.protocol} (deformation {out.deformation})")
     head = (f"case {out.case}, organs {out.organs}, slices {','.join(out.slices)}, {truth}, targets {out.targets} (drive {out.drive}), device {out.device}, "
             f"particles {sum(out.n_particles.values())} ({out.n_particles}), driven {out.n_driven}")
-    est = out.estimate
+    est = out.results.get("slice-driven")
+    if est is None:
+        est = out.estimate
     state = ("converged" if est.converged else "STALLED" if est.reason == "stalled" else
              "NOT converged: the driven particles stopped but the model had not settled" if getattr(est, "slice_converged", False)
              else "NOT converged")
-    if getattr(est, "finished_by", "explicit") == "quasistatic":
-        tail = (f"estimate (quasi-static): {state} ({est.reason}) in {est.steps} Newton iterations, {est.ms_per_step:.1f} ms each, "
+    if getattr(est, "finished_by", "explicit") == "copy":
+        tail = "estimate (copy): the planes' observed motion, no solve"
+    elif getattr(est, "finished_by", "explicit") == "quasistatic":
+        tail = (f"slice-driven (quasi-static): {state} ({est.reason}) in {est.steps} Newton iterations, {est.ms_per_step:.1f} ms each, "
                 f"RMS residual {est.rms_residual_mm:.3f} mm; "
                 + ("the whole model had settled" if est.settled else
                    f"the last iteration still moved a particle {est.body_motion_mm:.3f} mm: not yet an equilibrium"))
     else:
         before = (f" after {est.linear_iterations} conjugate-gradient iterations of an unsettled quasi-static start"
                   if getattr(est, "finished_by", "") == "quasistatic+explicit" else "")
-        tail = (f"estimate: {state} ({est.reason}) in {est.steps} steps{before}, {est.ms_per_step:.2f} ms/step, "
+        tail = (f"slice-driven: {state} ({est.reason}) in {est.steps} steps{before}, {est.ms_per_step:.2f} ms/step, "
                 f"RMS residual {est.rms_residual_mm:.3f} mm; "
                 + ("the whole model had settled" if est.settled else
                    f"the model was still moving ({est.body_motion_mm:.2f} mm per 100 steps at the 99th percentile: "
@@ -70,10 +76,12 @@ def format_table(out: RunResult) -> str:
             dropped = ", ".join(pc["dropped"]) or "none"
             tail += (f"\nplane check: planes' match (mean correlation) unmoved {pc['match_none']:.3f}, every plane's motion "
                      f"{pc['match_all']:.3f}, kept {pc['match_kept']:.3f}; not driven: {dropped}")
-    if not math.isnan(getattr(est, "plane_match", float("nan"))):
-        tail += f"\nestimate's own measure: planes' match {est.plane_match:.3f} (unmoved {est.plane_match_unmoved:.3f})"
-        if est.flag:
-            tail += f"; FLAGGED: {est.flag}"
+    chosen = out.estimate
+    if not math.isnan(getattr(chosen, "plane_match", float("nan"))):
+        tail += (f"\nestimate's own measure ({out.estimator}): planes' match {chosen.plane_match:.3f} (unmoved "
+                 f"{chosen.plane_match_unmoved:.3f})")
+        if chosen.flag:
+            tail += f"; FLAGGED: {chosen.flag}"
     from .organs import format_organ_table
 
     organs = "\n\nevery organ (pancreas: the target; stomach, duodenum, left kidney: organs at risk):\n" + format_organ_table(out.results)

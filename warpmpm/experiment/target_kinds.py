@@ -11,6 +11,11 @@
 - ``registration-bspline``: the whole slice's affine refined by a cubic B-spline field (deformable).
 - ``registration-demons``: the organ-aware registration, each organ's motion refined by a demons field started
   from it (deformable and organ-aware).
+- ``cine``: the captured planes imaged as a scanner's cine frames (the GT-warped planning image averaged over
+  :attr:`~warpmpm.experiment.config.CaseConfig.cine_thickness_mm` around each slice, one frame a plane in the slices'
+  order) and followed by the tracker's own frame pipeline (:class:`warpmpm.tracker.Tracker` with its default
+  configuration: each frame registered organ by organ against the estimate rendered on its plane, the frame check,
+  the ``copy`` estimator): what ``warpmpm track`` gives for those frames, to the digit (tested).
 
 With ``drive="inplane"`` a slice drives only its in-plane components (the through-plane motion is left
 to the physics or to an orthogonal slice); ``"pinned"`` also holds the through-plane coordinate where
@@ -23,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import InputError
 from ..groundtruth import GroundTruth, paper_affine
 from ..model import ParticleModel
 from ..slices import DrivingSlice, InPlaneAffine, driven_indices, in_plane_axes
@@ -33,7 +39,7 @@ from .capture import planning_and_gt_volumes
 from .case import PreparedCase
 from .config import CaseConfig
 
-__all__ = ["RunTargets", "slice_affines", "MIN_ORGAN_PARTICLES", "truth_organ_affines", "run_targets"]
+__all__ = ["RunTargets", "slice_affines", "MIN_ORGAN_PARTICLES", "truth_organ_affines", "cine_frames", "cine_targets", "run_targets"]
 
 
 @dataclass
@@ -63,6 +69,9 @@ class RunTargets:
     fields: dict = field(default_factory=dict)
     organ_fields: dict = field(default_factory=dict)
     combined_mm: np.ndarray | None = None
+    first_plane_mm: np.ndarray | None = None
+    """``cine``: every particle moved by the first frame's registered motion alone (the ``propagate`` baseline: the first
+    slice's motion copied), else None (``propagate`` is computed from :attr:`affines`)."""
     plane_match: object = None
     """For the registration kinds: ``plane_match(positions_mm)``, the mean correlation of the captured planes with the
     planning image moved to ``positions_mm`` (None: unmoved), the estimate's own measure (:mod:`warpmpm.plane_check`)."""
@@ -113,9 +122,67 @@ def truth_organ_affines(model: ParticleModel, gt_pos: np.ndarray, slices: list[D
     return out
 
 
+def cine_frames(prep: PreparedCase, gt: GroundTruth, slices: list[DrivingSlice], thickness_mm: float,
+                paths: list[str] | None = None) -> list:
+    """The ``cine`` targets' frames: per slice, the GT-warped planning image averaged over ``thickness_mm`` around it
+    (a rectangular slice profile), one voxel thick on the planning grid, as :class:`warpmpm.cine.CineFrame` (plane
+    ``k``, 0.1 s apart); ``paths``: where each frame would be written (its name in messages)."""
+    from ..cine import _frame
+    from .cine_series import _frame_image
+
+    case = prep.case
+    if case.image is None:
+        raise InputError("--targets cine images the planes from the planning image: give --image (the phantom has one)")
+    _, warped = planning_and_gt_volumes(case, gt)
+    rng = np.random.default_rng(0)
+    out = []
+    for k, s in enumerate(slices):
+        ijk = np.asarray([(np.asarray(case.geometry.size) - 1) / 2.0])
+        ijk[0, s.image_axis(case.geometry)] = s.index
+        through = case.geometry.index_to_world(ijk)[0]
+        img = _frame_image(warped, case, s.orientation, through, thickness_mm, 0.0, rng, None)
+        f = _frame(paths[k] if paths else f"{prep.to_input(s)} (captured plane {k})", img, 0.1 * k, thickness_mm)
+        f.plane = k
+        out.append(f)
+    return out
+
+
+def cine_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_pos: np.ndarray, slices: list[DrivingSlice],
+                 cfg: CaseConfig) -> RunTargets:
+    """``--targets cine`` (module docstring): the captured planes through the tracker's frame pipeline."""
+    import time
+
+    from ..tracker import Tracker, TrackerConfig
+
+    frames = cine_frames(prep, gt, slices, cfg.cine_thickness_mm)
+    t0 = time.perf_counter()
+    tracker = Tracker(prep.case, frames, TrackerConfig(organs=model.letters), model=model)
+    first, rows, affines, organ_affines = None, [], [], {}
+    for k, (s, f) in enumerate(zip(slices, frames)):
+        tf = tracker.step(k, f)
+        rows.append(tf.row)
+        if first is None:
+            first = tf.positions_mm.copy()
+        reg = tracker.last_registration
+        affines.append(reg[0].affine if reg else InPlaneAffine(np.eye(2)))
+        organ_affines[s] = {o: r.affine for o, r in reg[1].items()} if reg else {}
+    final = tracker.positions_mm()
+    x0 = model.positions_mm
+    drive = slice_targets(model, x0, slices, lambda s, idx: final[idx])
+    err = in_plane_errors_mm(model, slices, drive.idx, drive.targets_mm, gt_pos)
+    info = {"method": "cine (the tracker's frame pipeline)", "error_mm": float(err.mean()) if err.size else float("nan"),
+            "median_error_mm": float(np.median(err)) if err.size else float("nan"),
+            "wall_s": float(np.mean([r["registration_ms"] for r in rows])) / 1e3, "frames": rows,
+            "tracked_wall_s": time.perf_counter() - t0, "thickness_mm": cfg.cine_thickness_mm,
+            "skipped": [str(prep.to_input(s)) for s, r in zip(slices, rows) if r["solver"] == "none"]}
+    return RunTargets(drive, affines, organ_affines, info, info["error_mm"], combined_mm=final, first_plane_mm=first)
+
+
 def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_pos: np.ndarray, slices: list[DrivingSlice],
                 cfg: CaseConfig) -> RunTargets:
     """The targets of ``cfg.targets`` for ``model`` driven from ``slices``."""
+    if cfg.targets == "cine":
+        return cine_targets(prep, gt, model, gt_pos, slices, cfg)
     x0 = model.positions_mm
     if cfg.targets in ("affine", "gt", "gt-inplane"):
         affines = slice_affines(prep, model, gt_pos, slices, cfg)
