@@ -196,9 +196,9 @@ def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_po
         organ_affines, combined = {}, None
         if cfg.targets != "affine":  # the baselines copy what the true in-plane motion shows, organ by organ
             organ_affines = truth_organ_affines(model, gt_pos, slices, prep.centre_mm)
-            if len(slices) > 1:
-                copied = {s: propagate(model, s, a, prep.centre_mm, organ_affines[s]) for s, a in zip(slices, affines)}
-                combined = combine_planes(model, x0, slices, lambda s, i: copied[s][i])
+        if len(slices) > 1:  # every plane's motion copied and combined (the fitted affine's: one per slice)
+            copied = {s: propagate(model, s, a, prep.centre_mm, organ_affines.get(s)) for s, a in zip(slices, affines)}
+            combined = combine_planes(model, x0, slices, lambda s, i: copied[s][i])
         return RunTargets(drive, affines, organ_affines, in_plane_error_mm=float(err.mean()) if err.size else float("nan"),
                           combined_mm=combined)
     case = prep.case
