@@ -87,3 +87,18 @@ def test_the_copy_of_fitted_affines_combines_every_plane(cine_run):
     copy, planes = out.results["copy"], out.results["propagate_planes"]
     assert all(copy.organs[o]["error_mm"] == planes.organs[o]["error_mm"] for o in copy.organs)
     assert copy.error_mm < out.results["propagate"].error_mm
+
+
+def test_the_materials_reach_the_mpm_and_leave_the_copy_alone(cine_run):
+    """``materials="tissue"`` (elastography's soft duodenum and stomach instead of the paper's MPa): the seed's MPM ends
+    elsewhere and says which table it used; the copy, which uses no materials, is unchanged to the digit."""
+    from dataclasses import replace
+
+    cfg, prep, gt, _ = cine_run
+    paper = run_prepared(prep, gt, replace(cfg, targets="affine", baselines=("slice-driven",)))
+    tissue = run_prepared(prep, gt, replace(cfg, targets="affine", baselines=("slice-driven",), materials="tissue"))
+    assert paper.to_json()["results"]["slice-driven"]["materials"] == "paper"
+    assert tissue.to_json()["results"]["slice-driven"]["materials"] == "tissue"
+    a, b = paper.results["slice-driven"], tissue.results["slice-driven"]
+    assert abs(a.error_mm - b.error_mm) > 1e-3 or any(abs(a.organs[o]["error_mm"] - b.organs[o]["error_mm"]) > 1e-3 for o in a.organs)
+    assert paper.results["copy"].error_mm == tissue.results["copy"].error_mm

@@ -246,8 +246,12 @@ def track(image, cine, out, *, labels=None, rtstruct=None, preset: str = "amos",
         "max_dose_gy": max_dose_gy, "dose_coverage_warn_pct": dose_coverage_warn_pct,
         "assume_registered": assume_registered, "overwrite": overwrite}
     # checked and locked before any work: never an input, never a folder this tool did not write, one writer at a time
-    folder = OutputFolder(out, kind="track", overwrite=overwrite,
-                          record={"arguments": call, "estimator": cfg.estimator, "config": _config_record(cfg)},
+    record = {"arguments": call, "estimator": cfg.estimator, "config": _config_record(cfg)}
+    if cfg.materials is not None:  # the table itself, with its sources: the file may change after the track
+        from .materials import material_table
+
+        record["materials"] = material_table(cfg.materials).to_json()
+    folder = OutputFolder(out, kind="track", overwrite=overwrite, record=record,
                           inputs=[("--image", image), ("--labels", labels), ("--rtstruct", rtstruct), ("--cine", cine),
                                   ("--dose", dose), ("--beam-on", beam_on)])
     try:

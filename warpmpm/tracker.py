@@ -34,7 +34,7 @@ import csv
 import os
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -95,6 +95,10 @@ class TrackerConfig:
     equals the copy on the seen organs and is better on an organ no plane reaches in 1 of 4 cases (CT sample, sagittal +
     coronal, left kidney 2.18 mm against 2.73), worse in 3 (MR sample, sagittal, duodenum 1.96 against 1.15; CT,
     sagittal, kidney 2.01 against 1.73; phantom, sagittal, kidney 2.44 against 2.28): not the default."""
+    materials: str | None = None
+    """The organs' and tissues' materials (:mod:`warpmpm.materials`: ``paper``, ``tissue`` or a JSON file) for the
+    estimators that use any: the slice-driven MPM (default ``paper``, the seed's) and the completion (default
+    ``tissue``, :attr:`CompletionConfig.materials`). None: each its own default. The copy uses none."""
     completion: CompletionConfig = field(default_factory=CompletionConfig)
     """The completion model's settings (:class:`~warpmpm.solvers.completion.CompletionConfig`)."""
     preset: str | None = None
@@ -184,10 +188,18 @@ class Tracker:
                              "use it: drop them, or add --estimator slice-driven")
         if case.image is None:
             raise InputError("tracking needs the planning image (--image): the frames are registered against it, moved by the estimate")
+        if cfg.materials is not None:
+            from .materials import material_table
+
+            table = material_table(cfg.materials)
+            cfg = replace(cfg, completion=replace(cfg.completion, materials=cfg.materials))
+            self.config = cfg
         if model is None:
             present = [o for o in ORGANS if o in case.label_map and np.any(case.labels == case.label_map[o])]
             wanted = [o for o, c in zip(ORGANS, "psdl") if c in cfg.organs and o in present]
             model = build_model(case, tuple(wanted), sampling_step=cfg.particle_step)
+        if cfg.materials is not None:
+            model = replace(model, materials={**model.materials, **table.organ_materials(model.organs)})
         self.model: ParticleModel = model
         m = self.model
         self.label_values = {o: case.label_map[o] for o in m.organs}

@@ -104,6 +104,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="which estimator is results.estimate (both are scored, each under its own name): copy, each organ "
                    "moved by the motion the planes show of it (default: the measured best); slice-driven, the seed's MPM "
                    "(examples/seed_experiment.py reproduces the paper with it)")
+    d.add_argument("--materials", default=None, metavar="paper|tissue|FILE",
+                   help="the estimators' materials (slice-driven: default paper; completion: default tissue), or a JSON file "
+                   "(docs/how-to/change-materials.md); the truth keeps its own")
     d.add_argument("--organs", default="psdl", help="organ combination: p, ps, pd, pl, psd, psl, pdl, psdl")
     d.add_argument("--slices", default=None, help="driving slices, e.g. axial:12,sagittal:40 (input-volume voxel indices); "
                    "'auto': the axial slice and organ combination the selection model ranks best; 'auto:as', 'auto:ac', "
@@ -341,6 +344,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "slice-driven: the seed's MPM driven at the plane's particles (--solver, --max-steps, --wait-settled, "
                    "--no-predict set it); completion: the whole abdomen's equilibrium driven by the planes' observed motion, "
                    "set up once before the first frame (40-90 s)")
+    ka.add_argument("--materials", default=None, metavar="paper|tissue|FILE",
+                    help="the organs' materials for the estimators that use any (slice-driven, completion): the seed "
+                    "paper's table, every tissue at the middle of its published range, or a JSON file (docs/how-to/"
+                    "change-materials.md); default: each estimator's own (slice-driven paper, completion tissue)")
     ka.add_argument("--solver", default=_tracker_default("solver").method, choices=["auto", "explicit", "quasistatic"],
                    help="how each frame's equilibrium is found: auto (default): Newton / conjugate-gradient iterations to the "
                    "settled equilibrium, going on with explicit MPM steps when a frame has not settled after a few; explicit "

@@ -37,7 +37,7 @@ def cmd_track(a) -> int:
     from ..solvers import SolverConfig
     from ..tracker import TrackerConfig
 
-    cfg = TrackerConfig(estimator=a.estimator, preset=None if a.rtstruct else a.preset,
+    cfg = TrackerConfig(estimator=a.estimator, materials=a.materials, preset=None if a.rtstruct else a.preset,
                         organs=a.organs, particle_step=a.particle_step, max_steps=a.max_steps,
                         predict=not a.no_predict, wait_settled=a.wait_settled, registration=a.registration,
                         registration_linear_prior=a.linear_prior, reference=a.reference,

@@ -122,6 +122,10 @@ class CaseConfig:
     in-plane motion given) and the tracker's MPM ends on the copy on every series measured
     (``docs/decisions/2026-12-04-estimators.md``). ``slice-driven``: the seed's MPM driven at the planes' particles, to
     reproduce the paper (``examples/seed_experiment.py``, the sweeps)."""
+    materials: str | None = None
+    """The estimators' materials (:mod:`warpmpm.materials`: ``paper``, ``tissue`` or a JSON file): the slice-driven
+    MPM's (default ``paper``, the seed's) and the completion's (default ``tissue``); None: each its own default. The
+    truth keeps its own (the seed's protocols: the paper's table perturbed; a field: whatever made it)."""
     baselines: tuple[Baseline, ...] = ("initial", "propagate", "rigid", "volume_registration", "completion", "slice-driven")
     """Baselines scored beside the estimate (``slice-driven``: the seed's MPM under its own name when it is not the
     estimate)."""
@@ -205,6 +209,10 @@ class CaseConfig:
             raise InputError(f"unknown ground-truth contact {self.gt_contact!r}; use sticky or sliding")
         if not _is_int(self.max_steps) or self.max_steps < 1:
             raise InputError(f"max steps must be an integer >= 1, got {self.max_steps!r}")
+        if self.materials is not None:
+            from ..materials import material_table
+
+            material_table(self.materials)
         if self.estimator not in RUN_ESTIMATORS:
             raise InputError(f"unknown estimator {self.estimator!r} for a run; use {' or '.join(RUN_ESTIMATORS)} (the "
                              "completion is the baseline 'completion')")

@@ -109,7 +109,10 @@ def run_prepared(prep: PreparedCase, gt: GroundTruth, cfg: CaseConfig, recorder:
                 model, slices[0], tg.affines[0], prep.centre_mm, tg.organ_affines.get(slices[0]), tg.fields.get(slices[0]),
                 tg.organ_fields.get(slices[0]))
         t0 = time.perf_counter()
-        cm = CompletionModel(prep.case, cfg.preset, model, device=cfg.device)
+        from ..solvers.completion import CompletionConfig
+
+        ccfg = CompletionConfig() if cfg.materials is None else CompletionConfig(materials=cfg.materials)
+        cm = CompletionModel(prep.case, cfg.preset, model, ccfg, device=cfg.device)
         c = complete(cm, idx, targets, tg.drive.axes if cfg.targets != "gt" else None, copy_mm)
         results["completion"] = score(c.positions_mm, wall_s=time.perf_counter() - t0, converged=c.converged,
                                       iterations=c.iterations, residual=c.residual, unknowns=c.info["unknowns"])
@@ -192,6 +195,10 @@ def _slice_driven(prep, model, slices, tg, idx, targets, axes, gt_pos, cfg, reco
         recorder.on_step(estimator, step, rel, rms)
         progress.step("slice-driven", step, rms, cfg.max_steps)
 
+    if cfg.materials is not None:  # the estimate's materials; the truth keeps its own
+        from ..materials import material_table
+
+        model = replace(model, materials={**model.materials, **material_table(cfg.materials).organ_materials(model.organs)})
     est = SliceDrivenEstimator(model, slices, driven=idx, solver_config=replace(cfg.solver, device=cfg.device),
                                convergence=ConvergenceConfig(max_steps=cfg.max_steps, wait_settled=cfg.wait_settled),
                                extra_points_mm=np.vstack([targets, gt_pos]), callback=on_step)
@@ -216,7 +223,10 @@ def _slice_driven(prep, model, slices, tg, idx, targets, axes, gt_pos, cfg, reco
         settled=res.settled, body_motion_mm=res.body_motion_mm, min_det_f=res.min_det_f,
         linear_iterations=res.linear_iterations, finished_by=res.method,
         organs=organ_scores(model, res.positions_mm, gt_pos, on_plane, truth_distances=truth_d))
-    scores.info = {"solver": est.mpm.summary(), "gains": res.gains.to_json() if res.gains else None, "device": str(est.mpm.device)}
+    from ..materials import material_table
+
+    scores.info = {"solver": est.mpm.summary(), "gains": res.gains.to_json() if res.gains else None, "device": str(est.mpm.device),
+                   "materials": material_table(cfg.materials or "paper").name}
     return scores, res.positions_mm
 
 

@@ -11,11 +11,12 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
-from ..anatomy import TISSUE_CODE, TISSUES, nominal_material, tissue_map
+from ..anatomy import TISSUE_CODE, TISSUES, tissue_map
 from ..elastic_amg import elasticity_preconditioner, rigid_body_modes
 from ..errors import InputError, SimulationError
 from ..images import Case
-from ..model import PAPER_MATERIALS, ParticleModel
+from ..materials import material_table
+from ..model import ParticleModel
 from . import completion_kernels as ck
 
 
@@ -34,9 +35,10 @@ class CompletionConfig:
     at the particles' own resolution)."""
     point_mm: float | None = None
     """Spacing of the material points (mm); None: ``cell_mm / 2`` (8 points a cell)."""
-    materials: Literal["tissue", "paper"] = "tissue"
-    """``tissue``: every tissue at the middle of its published range (:data:`warpmpm.anatomy.TISSUE_RANGES`);
-    ``paper``: the seed paper's four organ materials (:data:`warpmpm.model.PAPER_MATERIALS`), tissue as ``tissue``."""
+    materials: str = "tissue"
+    """A material table (:func:`warpmpm.materials.material_table`): ``tissue``, every tissue at the middle of its
+    published range (:data:`warpmpm.anatomy.TISSUE_RANGES`); ``paper``, the seed paper's four organ materials
+    (:data:`warpmpm.model.PAPER_MATERIALS`), tissue as ``tissue``; or a JSON file of one's own."""
     on_plane_stiffness: float = 100.0
     """Spring of a particle on a plane toward its observed displacement, in units of ``mu_soft V_p / dx^2``."""
     off_plane_stiffness: float = 100.0
@@ -102,8 +104,7 @@ class CompletionConfig:
             raise InputError(f"CompletionConfig.reduced_modes must be 'affine' or 'translation', got {self.reduced_modes!r}")
         if not (self.response_rtol > 0 and np.isfinite(self.response_rtol)):
             raise InputError(f"CompletionConfig.response_rtol must be > 0, got {self.response_rtol}")
-        if self.materials not in ("tissue", "paper"):
-            raise InputError(f"CompletionConfig.materials must be 'tissue' or 'paper', got {self.materials!r}")
+        material_table(self.materials)  # a name or a readable table: checked before any work
 
 
 def observed_projector(axes: np.ndarray) -> np.ndarray:
@@ -149,11 +150,9 @@ class CompletionModel:
             raise InputError("the completion model found no body tissue in the planning crop (is the image's body outline empty?)")
         mu = np.zeros(len(TISSUES))
         lam = np.zeros(len(TISSUES))
+        table = material_table(cfg.materials)
         for t in TISSUES[1:]:
-            mu[TISSUE_CODE[t]], lam[TISSUE_CODE[t]] = nominal_material(t)
-        if cfg.materials == "paper":
-            for o, m in PAPER_MATERIALS.items():
-                mu[TISSUE_CODE[o]], lam[TISSUE_CODE[o]] = m.mu_pa, m.lam_pa
+            mu[TISSUE_CODE[t]], lam[TISSUE_CODE[t]] = table.entries[t]
         self.mu_soft = float(mu[TISSUE_CODE["soft_tissue"]])
         # anchors: bone, and the most posterior body point of each (lateral, superior) column where the body ends there
         # (the voxel behind it is air inside the scan: the back on the couch; a crop that cuts through the back is free)
@@ -383,4 +382,5 @@ class CompletionModel:
 
     def summary(self) -> dict:
         return {"cell_mm": self.dx, "points": self.n_points, "anchors": self.n_anchors, "active_nodes": int(len(self.active_nodes)),
-                "unknowns": int(3 * len(self.active_nodes)), "build_s": self.build_s, "materials": self.config.materials}
+                "unknowns": int(3 * len(self.active_nodes)), "build_s": self.build_s,
+                "materials": material_table(self.config.materials).name}
