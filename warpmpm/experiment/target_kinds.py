@@ -237,4 +237,4 @@ def run_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_po
                                          positions_mm)))
 
     return RunTargets(drive, affines, organ_affines, info, info.get("error_mm", float("nan")), fields, organ_fields,
-                      combined if len(slices) > 1 else None, match)
+                      combined if len(slices) > 1 else None, plane_match=match)
