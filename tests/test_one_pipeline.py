@@ -102,3 +102,22 @@ def test_the_materials_reach_the_mpm_and_leave_the_copy_alone(cine_run):
     a, b = paper.results["slice-driven"], tissue.results["slice-driven"]
     assert abs(a.error_mm - b.error_mm) > 1e-3 or any(abs(a.organs[o]["error_mm"] - b.organs[o]["error_mm"]) > 1e-3 for o in a.organs)
     assert paper.results["copy"].error_mm == tissue.results["copy"].error_mm
+
+
+def test_the_copy_of_a_planes_motion_moves_each_organ_by_its_own_affine():
+    """``copy_organ_motion``, the one copy the tracker and ``run`` share: an organ with its own affine moves by it, the
+    others by the whole slice's, and the coordinate along the plane's normal never changes (analytic)."""
+    from warpmpm.slices import InPlaneAffine, copy_organ_motion
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(0, 30, (200, 3))
+    organ_of = np.array(["pancreas", "duodenum"] * 100)
+    e_u, e_v, c = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]), np.array([5.0, -3.0, 2.0])  # a sagittal plane
+    whole = InPlaneAffine(np.eye(2), [1.0, -2.0])
+    own = InPlaneAffine([[np.cos(0.1), -np.sin(0.1)], [np.sin(0.1), np.cos(0.1)]], [0.5, 0.0])
+    out = copy_organ_motion(x, organ_of, e_u, e_v, c, whole, {"duodenum": own})
+    assert np.allclose(out[:, 0], x[:, 0])  # left-right: through the sagittal plane
+    p = organ_of == "pancreas"
+    assert np.allclose(out[p] - x[p], [0.0, 1.0, -2.0])
+    uv = (x[~p] - c)[:, 1:]
+    assert np.allclose((out[~p] - c)[:, 1:], uv @ own.A.T + own.t_mm)

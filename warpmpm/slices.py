@@ -24,7 +24,7 @@ from .errors import InputError
 from .images import ORIENTATION_WORLD_AXIS, Geometry, orientation_image_axis  # noqa: F401 (re-exported: the plane of a slice)
 from .model import ParticleModel
 
-__all__ = ["Orientation", "ORIENTATIONS", "in_plane_axes", "DrivingSlice", "parse_slices", "driven_indices",
+__all__ = ["Orientation", "ORIENTATIONS", "in_plane_axes", "DrivingSlice", "parse_slices", "driven_indices", "copy_organ_motion",
            "apply_in_plane_affine", "InPlaneAffine", "extract_slice"]
 
 
@@ -173,6 +173,20 @@ class InPlaneAffine:
 
     def to_json(self) -> dict:
         return {"A": self.A.tolist(), "t_mm": self.t_mm.tolist()}
+
+
+def copy_organ_motion(positions_mm: np.ndarray, organ_of: np.ndarray, e_u: np.ndarray, e_v: np.ndarray, centre_mm: np.ndarray,
+                      whole: "InPlaneAffine", organs: dict | None = None) -> np.ndarray:
+    """The copy of a plane's motion: every position moved in the plane (e_u, e_v) by its organ's in-plane affine
+    (``organs``: organ name -> :class:`InPlaneAffine`; ``organ_of``: each position's organ name), an organ without one by
+    the whole slice's (``whole``); the through-plane coordinate unchanged. The one place the copy is computed: the
+    tracker's observation, ``run``'s ``propagate`` baselines and its copy estimate all call it."""
+    out = whole.apply(positions_mm, e_u, e_v, centre_mm)
+    for organ, aff in (organs or {}).items():
+        sel = organ_of == organ
+        if sel.any():
+            out[sel] = aff.apply(np.asarray(positions_mm)[sel], e_u, e_v, centre_mm)
+    return out
 
 
 def extract_slice(volume: np.ndarray, geometry: Geometry, orientation: str, index: int, centre_mm: np.ndarray) -> sitk.Image:

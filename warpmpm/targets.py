@@ -27,7 +27,7 @@ from .imaging import capture_slice, particle_label_map, slice_mask, warp_array
 from .metrics import correlation
 from .model import ParticleModel
 from .registration import SliceField, register_organ_demons, register_slice_bspline, register_slice_organs
-from .slices import DrivingSlice, InPlaneAffine, driven_indices, extract_slice, in_plane_axes
+from .slices import DrivingSlice, InPlaneAffine, copy_organ_motion, driven_indices, extract_slice, in_plane_axes
 
 __all__ = ["plane_projector", "DriveTargets", "slice_targets", "affine_drive_targets", "affine_targets",
            "truth_targets", "in_plane_truth_targets", "in_plane_errors_mm", "field_motion", "MIN_ORGAN_PIXELS",
@@ -324,10 +324,7 @@ def _registration_pass(model: ParticleModel, slices: list[DrivingSlice], plannin
         e_u, e_v = in_plane_axes(model, s.orientation)
         if s in fields:
             return field_motion(fields[s], positions_mm[idx], e_u, e_v, centre_mm)
-        out = whole[s].apply(positions_mm[idx], e_u, e_v, centre_mm)
-        for organ, aff in organ_affines[s].items():
-            sel = organ_of[idx] == organ
-            out[sel] = aff.apply(positions_mm[idx[sel]], e_u, e_v, centre_mm)
+        out = copy_organ_motion(positions_mm[idx], organ_of[idx], e_u, e_v, centre_mm, whole[s], organ_affines[s])
         for organ, f in organ_fields.get(s, {}).items():
             sel = organ_of[idx] == organ
             out[sel] = field_motion(f, positions_mm[idx[sel]], e_u, e_v, centre_mm)

@@ -45,6 +45,7 @@ from .errors import InputError, InputWarning
 from .images import ORGANS, Case
 from .model import ParticleModel, build_model
 from .registration import BACKENDS, register_slice_organs, slice_metric
+from .slices import copy_organ_motion
 from .imaging import particle_label_map, render_plane, scatter_displacements
 from .estimators import FrameObservation
 from .solvers import SolverConfig
@@ -293,16 +294,13 @@ class Tracker:
         organ_of = np.asarray(m.organs)[m.organ_index]
         self.last_registration = (whole, per_organ)
 
+        organ_affines = {o: r.affine for o, r in per_organ.items()}
+
         def observed(now, then):
             """``now`` with its in-plane components replaced by where the frame's per-organ motion takes ``then``
             (the positions when the plane was last imaged); the through-plane components are kept."""
-            uv = frame.in_plane(then)
-            out = uv @ whole.affine.A.T + whole.affine.t_mm
-            for o, r in per_organ.items():
-                sel = organ_of == o
-                out[sel] = uv[sel] @ r.affine.A.T + r.affine.t_mm
-            d = out - frame.in_plane(now)
-            return now + d[:, :1] * frame.e_u + d[:, 1:] * frame.e_v
+            moved = copy_organ_motion(then, organ_of, frame.e_u, frame.e_v, frame.centre_mm, whole.affine, organ_affines)
+            return now + (moved - now) @ frame.projector
 
         on = self.on_plane(frame, x)
         if not on.any():

@@ -24,7 +24,7 @@ import SimpleITK as sitk
 from ..groundtruth import GroundTruth
 from ..images import Geometry
 from ..model import ParticleModel
-from ..slices import DrivingSlice, InPlaneAffine, in_plane_axes
+from ..slices import copy_organ_motion, DrivingSlice, InPlaneAffine, in_plane_axes
 from ..targets import field_motion
 from .capture import planning_and_gt_volumes
 from .case import PreparedCase
@@ -42,10 +42,8 @@ def propagate(model: ParticleModel, s: DrivingSlice, affine: InPlaneAffine, cent
     e_u, e_v = in_plane_axes(model, s.orientation)
     if field is not None:  # a deformable slice motion: every particle takes the motion of its point of the slice
         return field_motion(field, model.positions_mm, e_u, e_v, centre_mm)
-    out = affine.apply(model.positions_mm, e_u, e_v, centre_mm)
-    for organ, aff in (organ_affines or {}).items():
-        sel = model.organ_slice(organ)
-        out[sel] = aff.apply(model.positions_mm[sel], e_u, e_v, centre_mm)
+    organ_of = np.asarray(model.organs)[model.organ_index]
+    out = copy_organ_motion(model.positions_mm, organ_of, e_u, e_v, centre_mm, affine, organ_affines)
     for organ, f in (organ_fields or {}).items():
         sel = model.organ_slice(organ)
         out[sel] = field_motion(f, model.positions_mm[sel], e_u, e_v, centre_mm)
