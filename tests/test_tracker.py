@@ -500,3 +500,32 @@ def test_a_translation_seen_on_a_sagittal_cine_moves_every_organ_with_it(tmp_pat
         mean = d[m.organ_slice(o)].mean(0)
         assert np.allclose(mean[1:], t[1:], atol=0.8), (o, mean)
     assert np.abs(d[:, 0]).max() < 0.3  # no plane measures left-right: nothing invents it
+
+
+def test_make_cine_images_the_planes_where_asked_and_else_the_largest_pancreas_section(tmp_path):
+    """``make-cine --slices sagittal:I``: every sagittal frame lies on slice I of the planning volume (its position
+    along the normal, to the voxel); the coronal plane, not named, lies on the slice holding the most pancreas; both
+    are recorded in series.json. A plane not imaged, or one outside the volume, is refused before anything is written."""
+    import json
+
+    from warpmpm.images import load_case
+    from warpmpm.model import build_model
+
+    out = tmp_path / "s"
+    assert main(["make-cine", "--phantom-resolution", "3", "--frames", "2", "--plane", "sagittal,coronal", "--slices",
+                 "sagittal:20", "--out", str(out)]) == 0
+    case = load_case(str(out / "planning" / "labels.nii.gz"), str(out / "planning" / "image.nii.gz"))
+    model = build_model(case, "psdl")
+    best = int(np.argmax(model.slice_counts("coronal")[:, model.organs.index("pancreas")]))
+    series = json.load(open(out / "truth" / "series.json"))
+    assert series["slices"] == {"sagittal": 20, "coronal": best}
+    assert series["placement"]["coronal"] == "largest section of the pancreas"
+    g = case.geometry
+    for f in read_cine(str(out / "cine")):
+        a = 0 if abs(f.normal[0]) > 0.9 else 1
+        k = g.world_to_index(f.centre_mm[None, :])[0][a]
+        assert abs(k - (20 if a == 0 else best)) < 0.5
+    for bad in ("axial:5", "sagittal:999"):
+        assert main(["make-cine", "--phantom-resolution", "3", "--frames", "2", "--plane", "sagittal,coronal", "--slices", bad,
+                     "--out", str(tmp_path / bad.replace(":", "_"))]) == 2
+        assert not (tmp_path / bad.replace(":", "_")).exists()

@@ -24,7 +24,7 @@ def config_from_args(a):
     protocol = "field" if a.truth_field is not None else a.protocol
     return CaseConfig(image=a.image, labels=a.labels, preset=a.preset, phantom_seed=a.phantom_seed, phantom_resolution=a.phantom_resolution,
                       estimator=a.estimator, materials=a.materials, organs=a.organs, slices=a.slices, protocol=protocol, truth_field=a.truth_field, deformation=a.deformation, targets=a.targets, drive=a.drive,
-                      cine_thickness_mm=a.cine_thickness_mm, registration=a.registration, registration_passes=a.registration_passes, plane_check=not a.no_plane_check,
+                      cine_thickness_mm=a.cine_thickness_mm, cine_linear_prior=a.cine_linear_prior, registration=a.registration, registration_passes=a.registration_passes, plane_check=not a.no_plane_check,
                       device=a.device, particle_step=step, lattice=a.lattice, perturb=not a.no_perturb, literal=a.literal_angles, max_steps=a.max_steps, wait_settled=a.wait_settled,
                       baselines=baselines, rrd_every=a.rrd_every, gt_contact=a.gt_contact, gt_wait_settled=a.gt_wait_settled,
                       solver=SolverConfig(method=a.solver, cpu_threads=a.threads, explicit=ExplicitConfig(contact=a.contact, friction=a.friction)))

@@ -122,6 +122,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    "registration), one registered affine per slice, or a registered B-spline field")
     d.add_argument("--cine-thickness-mm", type=float, default=_experiment_default("cine_thickness_mm"),
                    help="--targets cine: the captured planes' slice thickness, mm (default %(default)s)")
+    d.add_argument("--cine-linear-prior", type=float, default=_experiment_default("cine_linear_prior"),
+                   help="--targets cine: the tracker's --linear-prior (default %(default)s, the tracker's; 0 for a truth that "
+                   "scales or shears its planes, as the seed's paper protocol does)")
     d.add_argument("--registration", default=_experiment_default("registration"), choices=list(BACKENDS),
                    help="the slice registration's optimiser (registration targets): ITK's gradient descent or Gauss-Newton, "
                    "the same correlation metric")
@@ -371,12 +374,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("make-cine", help="a synthetic cine series with its 3D truth (for tests and benchmarks)",
                        description="Breathing plus a contact push, each frame's truth simulated with perturbed materials, frames "
-                       "on sagittal (and coronal) planes through the pancreas; --out/cine the frames, --out/truth the truth.")
+                       "on sagittal (and coronal) planes where each shows the largest section of the pancreas (or where --slices puts them); "
+                       "--out/cine the frames, --out/truth the truth.")
     c.add_argument("--image", default=None, help="planning image (default: the built-in phantom)")
     c.add_argument("--labels", default=None)
     c.add_argument("--preset", default="amos", choices=["amos", "totalseg_ct", "totalseg_mr"])
     c.add_argument("--phantom-resolution", type=float, default=2.0)
     c.add_argument("--plane", default="sagittal", help="sagittal, coronal, or sagittal,coronal (interleaved)")
+    c.add_argument("--slices", default=None, help="where each plane lies, as planning-volume slice indices, e.g. "
+                   "sagittal:40,coronal:62 (what `warpmpm plan-planes` prints); a plane not named lies where it shows the "
+                   "largest section of the pancreas")
     c.add_argument("--frames", type=int, default=8)
     c.add_argument("--fps", type=float, default=4.0)
     c.add_argument("--thickness-mm", type=float, default=6.0)

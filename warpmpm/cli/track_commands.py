@@ -96,6 +96,17 @@ def cmd_make_cine(a) -> int:
     check_cine_parameters(planes, len(fields) if fields else a.frames, fps, 4.0, a.thickness_mm, a.pixel_mm, a.format)  # before anything is written
     if a.seed < 0:
         raise InputError(f"--seed must be a whole number >= 0, got {a.seed}")
+    given = None
+    if a.slices:
+        from ..slices import parse_slices
+
+        given = {}
+        for s in parse_slices(a.slices):
+            if s.orientation not in planes:
+                raise InputError(f"--slices {a.slices}: {s.orientation} is not one of the imaged planes (--plane {a.plane})")
+            if s.orientation in given:
+                raise InputError(f"--slices {a.slices}: {s.orientation} is given twice")
+            given[s.orientation] = s.index
     if a.image is not None and a.labels is None:
         raise InputError("--image needs --labels (without both, the built-in phantom is used)")
     import math
@@ -120,7 +131,7 @@ def cmd_make_cine(a) -> int:
         else:
             case = _planning_case(a.image, a.labels, a.preset)
         make_cine(case, work, planes=planes, frames=a.frames, fps=fps, thickness_mm=a.thickness_mm, pixel_mm=a.pixel_mm,
-                  seed=a.seed, particle_step=a.particle_step, fmt=a.format, truth_fields=fields,
+                  seed=a.seed, particle_step=a.particle_step, fmt=a.format, truth_fields=fields, slices=given,
                   progress=lambda t: print(t, flush=True))
     print(f"wrote {a.out}/cine and {a.out}/truth")
     return 0

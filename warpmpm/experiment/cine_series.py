@@ -31,7 +31,7 @@ from ..metrics import dice, voxelize
 from ..model import build_model
 from ..slices import orientation_image_axis
 
-__all__ = ["MAX_FRAMES", "BREATHING_MM", "check_cine_parameters", "make_cine", "same_session", "slab_average", "evaluate_track",
+__all__ = ["MAX_FRAMES", "BREATHING_MM", "check_cine_parameters", "make_cine", "plane_positions", "same_session", "slab_average", "evaluate_track",
            "plot_track_errors"]
 
 #: Most frames a synthetic series may hold (10 minutes at 10 frames/s).
@@ -64,7 +64,7 @@ def check_cine_parameters(planes, frames: int, fps: float, period_s: float, thic
 def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8, fps: float = 4.0, period_s: float = 4.0,
               thickness_mm: float = 6.0, pixel_mm: float | None = 2.0, noise_sd: float = 0.02, push_mm: float = 4.0,
               particle_step: int = 1, seed: int = 0, fmt: str = "dicom", truth_fields: list[str] | None = None,
-              progress=None) -> dict:
+              slices: dict | None = None, progress=None) -> dict:
     """Write ``out_dir/cine`` (frames) and ``out_dir/truth`` (positions, label maps) for ``case``; returns the
     series' parameters (also in ``truth/series.json``). Frames cycle through ``planes``; each is averaged over
     ``thickness_mm`` (partial volume) and resampled to ``pixel_mm`` square pixels in plane (an MR-Linac's
@@ -74,7 +74,12 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
 
     ``truth_fields``: the truth as displacement fields on the planning grid, one file a frame (:mod:`warpmpm.fields`,
     e.g. ``warpmpm make-truth``'s ``fields/``): each frame's particles move by its field and the frame is the planning
-    image warped by it; ``frames`` is then the number of fields, and no motion is simulated."""
+    image warped by it; ``frames`` is then the number of fields, and no motion is simulated.
+
+    ``slices``: orientation -> the index of the planning volume's slice each plane images (what ``warpmpm plan-planes``
+    chose, or what the MR-Linac was set to); an orientation it does not name lies where it shows the largest section of
+    the pancreas (a plane through the centroid can miss a curved pancreas: on the CT sample the sagittal plane through it
+    crosses 3 of its voxels)."""
     if truth_fields is not None:
         frames = len(truth_fields)
         if frames == 0:
@@ -92,6 +97,7 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
     cycle_amp = rng.uniform(0.7, 1.3, cycles)
     pusher = "duodenum" if "duodenum" in present else neighbours[0]
     pan_c = model.positions_mm[model.organ_slice("pancreas")].mean(0)
+    through = plane_positions(case, model, planes, slices)
     push_dir = pan_c - model.positions_mm[model.organ_slice(pusher)].mean(0)
     push_dir /= max(np.linalg.norm(push_dir), 1e-9)
     g = case.geometry
@@ -128,7 +134,7 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
             warped = warp_volume(case.image, field, g)
         all_truth.append(pos)
         orientation = planes[k % len(planes)]
-        frame = _frame_image(warped, case, orientation, pan_c, thickness_mm, noise_sd * float(np.ptp(case.image)), rng, pixel_mm)
+        frame = _frame_image(warped, case, orientation, through[orientation], thickness_mm, noise_sd * float(np.ptp(case.image)), rng, pixel_mm)
         if fmt == "nifti":
             sitk.WriteImage(frame, os.path.join(cine, f"frame_{k:04d}_{orientation}.nii.gz"))
         else:
@@ -147,6 +153,8 @@ def make_cine(case: Case, out_dir: str, *, planes=("sagittal",), frames: int = 8
     np.savez_compressed(os.path.join(truth, "positions.npz"), planning_mm=model.positions_mm, organ_index=model.organ_index,
                         organs=np.asarray(model.organs), truth_mm=np.asarray(all_truth))
     params = {"frames": frames, "fps": fps, "period_s": period_s, "planes": list(planes), "thickness_mm": thickness_mm,
+              "slices": {o: int(np.rint(g.world_to_index(through[o][None, :])[0][orientation_image_axis(g, o)])) for o in planes},
+              "placement": {o: "given" if slices and o in slices else "largest section of the pancreas" for o in planes},
               "pixel_mm": pixel_mm, "format": fmt,
               "noise_sd": noise_sd, "push_mm": push_mm, "pusher": pusher, "particle_step": particle_step, "seed": seed,
               "breathing_mm": BREATHING_MM, "cycle_amplitude": cycle_amp.tolist(), "materials": {
@@ -197,6 +205,26 @@ def _write_dicom_frame(frame: sitk.Image, path: str, k: int, t: float, thickness
     w.KeepOriginalImageUIDOn()
     w.SetFileName(path)
     w.Execute(out)
+
+
+def plane_positions(case: Case, model, planes, slices: dict | None = None) -> dict:
+    """orientation -> a world point (mm) its plane passes through: the slice ``slices`` names (planning-volume index), else
+    the slice with the most pancreas particles (its largest section), both through the pancreas centroid in plane."""
+    g = case.geometry
+    centre = g.world_to_index(model.positions_mm[model.organ_slice("pancreas")].mean(0)[None, :])[0]
+    out = {}
+    for o in planes:
+        a = orientation_image_axis(g, o)
+        ijk = centre.copy()
+        if slices and o in slices:
+            k = int(slices[o])
+            if not 0 <= k < g.size[a]:
+                raise InputError(f"--slices {o}:{k} is outside the planning volume (valid 0..{g.size[a] - 1})")
+        else:
+            k = int(np.argmax(model.slice_counts(o)[:, model.organs.index("pancreas")]))
+        ijk[a] = k
+        out[o] = g.index_to_world(ijk[None, :])[0]
+    return out
 
 
 def slab_average(volume: np.ndarray, np_axis: int, k: int, thickness_voxels: float) -> np.ndarray:

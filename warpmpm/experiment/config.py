@@ -80,6 +80,10 @@ class CaseConfig:
     affine per slice)."""
     cine_thickness_mm: float = 6.0
     """``cine`` targets: the slice thickness (mm) of the captured planes (an MR-Linac's cine: 5-7 mm)."""
+    cine_linear_prior: float = 10.0
+    """``cine`` targets: the tracker's :attr:`~warpmpm.tracker.TrackerConfig.registration_linear_prior` (its default:
+    10). A run's frame jumps from planning to the truth in one step, where a cine frame follows the last one 0.1-0.3 s
+    later: a truth that scales or shears its planes (the seed's paper protocol: 20 %) needs 0."""
     registration: Literal["itk", "gauss-newton"] = "itk"
     """The slice registration's optimiser for the ``registration*`` targets
     (:func:`warpmpm.registration.register_slices`): ITK's gradient descent or Gauss-Newton, the same correlation
@@ -194,6 +198,9 @@ class CaseConfig:
         if not (isinstance(self.cine_thickness_mm, (int, float)) and math.isfinite(self.cine_thickness_mm)
                 and 0.5 <= self.cine_thickness_mm <= 30):
             raise InputError(f"--cine-thickness-mm must be a finite number in 0.5..30, got {self.cine_thickness_mm!r}")
+        if not (isinstance(self.cine_linear_prior, (int, float)) and math.isfinite(self.cine_linear_prior)
+                and self.cine_linear_prior >= 0):
+            raise InputError(f"--cine-linear-prior must be a finite number >= 0, got {self.cine_linear_prior!r}")
         if self.targets not in TARGET_KINDS:
             raise InputError(f"unknown targets {self.targets!r}; use {', '.join(TARGET_KINDS)}")
         if self.device is not None and self.device != "cpu" and not str(self.device).startswith("cuda"):

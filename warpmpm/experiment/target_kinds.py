@@ -14,8 +14,9 @@
 - ``cine``: the captured planes imaged as a scanner's cine frames (the GT-warped planning image averaged over
   :attr:`~warpmpm.experiment.config.CaseConfig.cine_thickness_mm` around each slice, one frame a plane in the slices'
   order) and followed by the tracker's own frame pipeline (:class:`warpmpm.tracker.Tracker` with its default
-  configuration: each frame registered organ by organ against the estimate rendered on its plane, the frame check,
-  the ``copy`` estimator): what ``warpmpm track`` gives for those frames, to the digit (tested).
+  configuration but the linear prior, :attr:`~warpmpm.experiment.config.CaseConfig.cine_linear_prior`: each frame
+  registered organ by organ against the estimate rendered on its plane, the frame check, the ``copy`` estimator):
+  what ``warpmpm track`` gives for those frames (``--linear-prior`` the same), to the digit (tested).
 
 With ``drive="inplane"`` a slice drives only its in-plane components (the through-plane motion is left
 to the physics or to an orthogonal slice); ``"pinned"`` also holds the through-plane coordinate where
@@ -156,7 +157,8 @@ def cine_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_p
 
     frames = cine_frames(prep, gt, slices, cfg.cine_thickness_mm)
     t0 = time.perf_counter()
-    tracker = Tracker(prep.case, frames, TrackerConfig(organs=model.letters), model=model)
+    tracker = Tracker(prep.case, frames, TrackerConfig(organs=model.letters, registration_linear_prior=cfg.cine_linear_prior),
+                      model=model)
     first, rows, affines, organ_affines = None, [], [], {}
     for k, (s, f) in enumerate(zip(slices, frames)):
         tf = tracker.step(k, f)
