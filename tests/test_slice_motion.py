@@ -87,8 +87,18 @@ def test_organ_aware_registration_recovers_two_organs_sliding_where_one_affine_c
         mi.CopyInformation(stored)
         masks[organ] = mi
     whole_mask = sitk.Or(masks["pancreas"], masks["duodenum"])
-    whole, per_organ = register_slice_organs(stored, captured, np.zeros(3), whole_mask, masks, backend=backend)
+    tiny = np.zeros(arr.shape, np.uint8)
+    tiny[20:23, 20:23] = 1  # 9 pixels: too few to register on its own, reported as such
+    masks["stomach"] = sitk.GetImageFromArray(tiny)
+    masks["stomach"].CopyInformation(stored)
+    candidates = {}
+    whole, per_organ = register_slice_organs(stored, captured, np.zeros(3), whole_mask, masks, backend=backend,
+                                             candidates=candidates)
     assert set(per_organ) == set(moves)
+    assert {o: c["kept"] for o, c in candidates.items()} == {"pancreas": True, "duodenum": True, "stomach": False}
+    assert candidates["stomach"]["registration"] is None and "9 pixels" in candidates["stomach"]["why"]
+    assert candidates["pancreas"]["registration"] is per_organ["pancreas"]
+    del masks["stomach"]
     for organ, t in moves.items():
         got = per_organ[organ].affine
         np.testing.assert_allclose(got.t_mm, t, atol=0.3)

@@ -191,7 +191,7 @@ def _register_gn(stored, captured, mask, centre_mm, initial, levels, iterations,
 def register_slice_organs(stored: sitk.Image, captured: sitk.Image, centre_mm: np.ndarray, mask: sitk.Image,
                           organ_masks: dict[str, sitk.Image], min_pixels: int = 25,
                           max_slide_mm: float = 10.0, backend: str = "itk",
-                          linear_prior: float = 0.0) -> tuple[SliceRegistration, dict]:
+                          linear_prior: float = 0.0, candidates: dict | None = None) -> tuple[SliceRegistration, dict]:
     """Organ-aware 2D registration: the whole slice (metric over ``mask``), then each organ's footprint on it
     (``organ_masks``: organ -> its pixels on the stored slice) on its own, starting from the whole slice's
     motion, so organs on one slice may move apart or slide along each other. An organ's own motion is kept
@@ -203,22 +203,29 @@ def register_slice_organs(stored: sitk.Image, captured: sitk.Image, centre_mm: n
     whole slice's prior pulls toward the identity, an organ's toward the whole slice's motion; the fit comparison
     uses the same correlation either way).
 
+    ``candidates``: when given, filled with organ -> ``{"registration": its own SliceRegistration or None, "kept": bool,
+    "why": the reason it was refused or ""}`` for every organ of ``organ_masks`` (what the organ check decided, to be
+    judged against a truth).
+
     Returns the whole slice's :class:`SliceRegistration` and organ -> :class:`SliceRegistration`.
     """
     small = captured.GetNumberOfPixels() <= ONE_THREAD_MAX_PIXELS
     with one_itk_thread() if small else nullcontext():
         return _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_pixels, max_slide_mm, backend,
-                                      linear_prior)
+                                      linear_prior, {} if candidates is None else candidates)
 
 
-def _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_pixels, max_slide_mm, backend, linear_prior):
+def _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_pixels, max_slide_mm, backend, linear_prior,
+                           candidates):
     whole = register_slices(stored, captured, centre_mm, mask=mask, backend=backend, linear_prior=linear_prior)
     out = {}
     if not whole.ok:
         return whole, out
     for organ, own in organ_masks.items():
         pix = sitk.GetArrayViewFromImage(own)
-        if int(np.count_nonzero(pix)) < min_pixels:
+        n = int(np.count_nonzero(pix))
+        if n < min_pixels:
+            candidates[organ] = {"registration": None, "kept": False, "why": f"{n} pixels on the plane (< {min_pixels})"}
             continue
         radius = [max(1, int(round(4.0 / sp))) for sp in own.GetSpacing()]  # the organ's edge is in its footprint
         footprint = sitk.BinaryDilate(sitk.Cast(own, sitk.sitkUInt8), radius)
@@ -228,8 +235,13 @@ def _register_slice_organs(stored, captured, centre_mm, mask, organ_masks, min_p
             better = ncc(stored, captured, footprint, r.A, r.t_mm) > ncc(stored, captured, footprint, whole.A, whole.t_mm) if r.ok else False
         else:
             better = slice_metric(stored, captured, footprint, r.affine) < slice_metric(stored, captured, footprint, whole.affine)
-        if r.ok and _organ_motion_plausible(own, whole.affine, r.affine, max_slide_mm) and better:
+        plausible = r.ok and _organ_motion_plausible(own, whole.affine, r.affine, max_slide_mm)
+        if r.ok and plausible and better:
             out[organ] = r
+        why = ("" if organ in out else "the registration failed" if not r.ok else
+               f"implausible against the whole slice's motion (> {max_slide_mm:g} mm apart or scaled beyond 0.8-1.25)"
+               if not plausible else "fits its footprint no better than the whole slice's motion")
+        candidates[organ] = {"registration": r, "kept": organ in out, "why": why}
     return whole, out
 
 

@@ -232,6 +232,7 @@ class Tracker:
         self.plane_labels: dict[int, np.ndarray] = {}
         #: the last frame's registration: (the whole slice's, {organ: its own}) results, None when it failed
         self.last_registration = None
+        self.last_candidates: dict = {}
 
     def positions_mm(self) -> np.ndarray:
         """The current estimate: every particle's position (N, 3), mm, world LPS."""
@@ -264,6 +265,8 @@ class Tracker:
         """Estimate one frame (from the previous one's state)."""
         m = self.model
         self.last_registration = None
+        #: the last frame's organ check: organ -> its own registration, kept or not and why
+        self.last_candidates: dict = {}
         x = self.positions_mm()
         prev = self.last_frame.get(frame.plane)
         t_ref = time.perf_counter()
@@ -280,7 +283,8 @@ class Tracker:
         t_reg = time.perf_counter()
         try:
             whole, per_organ = register_slice_organs(stored, captured, frame.centre_mm, mask, own, backend=self.config.registration,
-                                                     linear_prior=self.config.registration_linear_prior)
+                                                     linear_prior=self.config.registration_linear_prior,
+                                                     candidates=self.last_candidates)
         except InputError as exc:  # a blank or constant frame: flagged and not driven, the series goes on
             return self._skipped(n, frame, x, time.perf_counter() - t_reg, ref_s, str(exc))
         reg_s = time.perf_counter() - t_reg  # the whole call: refused organs and the fit checks cost time too

@@ -148,6 +148,41 @@ def cine_frames(prep: PreparedCase, gt: GroundTruth, slices: list[DrivingSlice],
     return out
 
 
+#: an organ's registered in-plane motion within this of its true in-plane motion (mean over its particles on the
+#: plane) is a good registration (issue 52's label)
+GOOD_REGISTRATION_MM = 1.0
+
+
+def organ_check_rows(model: ParticleModel, frame, before_mm: np.ndarray, truth_mm: np.ndarray, registration, candidates: dict,
+                     plane: str) -> list[dict]:
+    """The organ check of one frame judged against the truth: per organ the tracker considered, whether its own motion
+    was kept (else the whole slice's moved it) and why, and the mean in-plane distance (mm) of its particles on the plane
+    (before the frame) moved by its own registration and by the whole slice's from where the truth puts them; ``good``:
+    its own within :data:`GOOD_REGISTRATION_MM`."""
+    if registration is None:
+        return []
+    organ_of = np.asarray(model.organs)[model.organ_index]
+    on = np.abs(frame.distance_mm(before_mm)) <= frame.thickness_mm / 2
+    P = frame.projector
+    out = []
+    for organ, c in candidates.items():
+        sel = on & (organ_of == organ)
+        if not sel.any():
+            continue
+        true = (truth_mm[sel] - before_mm[sel]) @ P
+
+        def error(aff):
+            return float(np.linalg.norm(aff.apply(before_mm[sel], frame.e_u, frame.e_v, frame.centre_mm) - before_mm[sel] - true,
+                                        axis=1).mean())
+
+        own = error(c["registration"].affine) if c["registration"] is not None and c["registration"].ok else float("nan")
+        out.append({"plane": plane, "organ": organ, "kept": bool(c["kept"]), "why": c["why"], "particles": int(sel.sum()),
+                    "own_error_mm": own, "whole_error_mm": error(registration[0].affine),
+                    "true_motion_mm": float(np.linalg.norm(true, axis=1).mean()),
+                    "good": bool(own <= GOOD_REGISTRATION_MM)})
+    return out
+
+
 def cine_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_pos: np.ndarray, slices: list[DrivingSlice],
                  cfg: CaseConfig) -> RunTargets:
     """``--targets cine`` (module docstring): the captured planes through the tracker's frame pipeline."""
@@ -159,9 +194,12 @@ def cine_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_p
     t0 = time.perf_counter()
     tracker = Tracker(prep.case, frames, TrackerConfig(organs=model.letters, registration_linear_prior=cfg.cine_linear_prior),
                       model=model)
-    first, rows, affines, organ_affines = None, [], [], {}
+    first, rows, affines, organ_affines, checked = None, [], [], {}, []
     for k, (s, f) in enumerate(zip(slices, frames)):
+        before = tracker.positions_mm()
         tf = tracker.step(k, f)
+        checked += organ_check_rows(model, f, before, gt_pos, tracker.last_registration, tracker.last_candidates,
+                                    str(prep.to_input(s)))
         rows.append(tf.row)
         if first is None:
             first = tf.positions_mm.copy()
@@ -176,7 +214,7 @@ def cine_targets(prep: PreparedCase, gt: GroundTruth, model: ParticleModel, gt_p
             "median_error_mm": float(np.median(err)) if err.size else float("nan"),
             "wall_s": float(np.mean([r["registration_ms"] for r in rows])) / 1e3, "frames": rows,
             "tracked_wall_s": time.perf_counter() - t0, "thickness_mm": cfg.cine_thickness_mm,
-            "skipped": [str(prep.to_input(s)) for s, r in zip(slices, rows) if r["solver"] == "none"]}
+            "skipped": [str(prep.to_input(s)) for s, r in zip(slices, rows) if r["solver"] == "none"], "organ_check": checked}
     return RunTargets(drive, affines, organ_affines, info, info["error_mm"], combined_mm=final, first_plane_mm=first)
 
 
