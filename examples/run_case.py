@@ -82,9 +82,11 @@ def main(argv=None):
     organs = list(ev["results"]["estimate"]["organs"])
     print(f"Tracked {a.frames} frames of a finite-element truth (breathing + a duodenal push) on the phantom from "
           "sagittal / coronal cine; mean error over the frames, mm (p95):\n")
-    print("| method | " + " | ".join(organs) + " |\n|---|" + "---|" * len(organs))
-    for name, r in ev["results"].items():
-        print(f"| {name} | " + " | ".join(f"{s['error_mm']:.2f} ({s['p95_mm']:.2f})" for s in r["organs"].values()) + " |")
+    unseen = [o for o, s in ev["results"]["estimate"]["organs"].items() if not s.get("seen", True)]
+    print("| method | " + " | ".join(o + (" (on no plane)" if o in unseen else "") for o in organs) + " |\n|---|" + "---|" * len(organs))
+    for name, r in ev["results"].items():  # nearest / global: the baselines of an organ no plane measured
+        print(f"| {name} | " + " | ".join(f"{r['organs'][o]['error_mm']:.2f} ({r['organs'][o]['p95_mm']:.2f})" if o in r["organs"]
+                                          else "" for o in organs) + " |")
     print(f"\nlatency per frame: median {ev['latency_s']['median']:.2f} s, p95 {ev['latency_s']['p95']:.2f} s")
     print(f"wrote {a.out}/: planning/, truth/, cine/, track/ (labels/, displacement/, track.csv), track.rrd, eval.json, "
           f"eval.png, log.txt")

@@ -529,3 +529,36 @@ def test_make_cine_images_the_planes_where_asked_and_else_the_largest_pancreas_s
         assert main(["make-cine", "--phantom-resolution", "3", "--frames", "2", "--plane", "sagittal,coronal", "--slices", bad,
                      "--out", str(tmp_path / bad.replace(":", "_"))]) == 2
         assert not (tmp_path / bad.replace(":", "_")).exists()
+
+
+def test_the_baselines_of_an_organ_no_plane_measures_go_through_the_estimator_interface(series):
+    """The tracker follows the copy with the ``nearest`` and ``global`` rules beside its estimate: after a frame, an
+    organ the frame did not measure is shifted as a whole by the nearest measured organ's mean motion (planning
+    centroids) or by the measured particles' mean motion, the measured organs move as in the estimate; evaluate-track
+    scores those baselines on the organs no frame measured, and says which organs were seen."""
+    from warpmpm.images import load_case
+    from warpmpm.tracker import Tracker, TrackerConfig
+
+    case = load_case(os.path.join(series, "planning", "labels.nii.gz"), os.path.join(series, "planning", "image.nii.gz"))
+    frames = read_cine(os.path.join(series, "cine"))
+    t = Tracker(case, frames, TrackerConfig())
+    x0 = t.model.positions_mm.copy()
+    est = t.step(0, frames[0]).positions_mm
+    measured = set(t.last_registration[1])
+    organ_of = np.asarray(t.model.organs)[t.model.organ_index]
+    missed = [o for o in t.model.organs if o not in measured]
+    assert measured and missed, (measured, missed)
+    d = est - x0
+    for rule in ("nearest", "global"):
+        b = t.baselines[rule]["positions"] - x0
+        for o in measured:
+            assert np.allclose(b[organ_of == o], d[organ_of == o])
+        for o in missed:
+            shift = b[organ_of == o]
+            assert np.allclose(shift, shift[0])  # a translation of the whole organ
+    g = t.baselines["global"]["positions"] - x0
+    assert np.allclose(g[organ_of == missed[0]][0], d[np.isin(organ_of, list(measured))].mean(0))
+    c = {o: x0[organ_of == o].mean(0) for o in t.model.organs}
+    near = min(measured, key=lambda m: np.linalg.norm(c[m] - c[missed[0]]))
+    n = t.baselines["nearest"]["positions"] - x0
+    assert np.allclose(n[organ_of == missed[0]][0], d[organ_of == near].mean(0))

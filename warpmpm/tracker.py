@@ -47,7 +47,7 @@ from .model import ParticleModel, build_model
 from .registration import BACKENDS, register_slice_organs, slice_metric
 from .slices import copy_organ_motion
 from .imaging import particle_label_map, render_plane, scatter_displacements
-from .estimators import FrameObservation
+from .estimators import FrameObservation, get_estimator
 from .solvers import SolverConfig
 from .solvers.completion import CompletionConfig
 
@@ -181,7 +181,6 @@ class Tracker:
             raise InputError(f"TrackerConfig.unseen must be whole-slice, nearest, global or none, got {cfg.unseen!r}")
         if cfg.reference not in ("estimate", "previous-frame"):
             raise InputError(f"TrackerConfig.reference must be 'estimate' or 'previous-frame', got {cfg.reference!r}")
-        from .estimators import get_estimator
 
         estimator_class = get_estimator(cfg.estimator)
         if cfg.estimator != "slice-driven" and (cfg.wait_settled or not cfg.predict):
@@ -233,6 +232,15 @@ class Tracker:
         #: the last frame's registration: (the whole slice's, {organ: its own}) results, None when it failed
         self.last_registration = None
         self.last_candidates: dict = {}
+        #: the baselines for an organ a frame does not measure, through the estimator interface: the copy with the
+        #: ``nearest`` and ``global`` rules (:attr:`TrackerConfig.unseen`), each following the series from its own state
+        #: (``particles.npz``: ``nearest_mm``, ``global_mm``; ``evaluate-track`` scores them on the organs no frame measured)
+        self.baselines: dict[str, dict] = {}
+        for rule in ("nearest", "global"):
+            b = get_estimator("copy")(m, case, list(candidates.values()), self.driven, replace(cfg, unseen=rule))
+            self.baselines[rule] = {"estimator": b, "positions": m.positions_mm.copy(), "plane": {}}
+        #: the organs some frame's registration measured (the others were seen by no plane)
+        self.measured_organs: set = set()
 
     def positions_mm(self) -> np.ndarray:
         """The current estimate: every particle's position (N, 3), mm, world LPS."""
@@ -320,6 +328,12 @@ class Tracker:
                                        self.plane_propagated.get(frame.plane, m.positions_mm))
         est = self.estimator.estimate(FrameObservation(frame, x, seen, on, tuple(per_organ)))
         positions, solve = est.positions_mm, est.solve
+        self.measured_organs |= set(per_organ)
+        for b in self.baselines.values():  # each from its own state, by the frame's motion
+            now = b["positions"]
+            b_seen = observed(now, now if by_estimate else b["plane"].get(frame.plane, m.positions_mm))
+            b["positions"] = b["estimator"].estimate(FrameObservation(frame, now, b_seen, on, tuple(per_organ))).positions_mm
+            b["plane"][frame.plane] = b["positions"].copy()
         self.last_frame[frame.plane] = frame
         self.labels_now = particle_label_map(m, positions, self.label_values)
         self.plane_positions[frame.plane] = positions
@@ -388,6 +402,7 @@ class Tracker:
             o.begin(self, out_dir)
         field_needed = any(o.needs_field for o in outputs)
         rows, positions, propagated = [], [], []
+        baselines = {name: [] for name in self.baselines}
         for n, frame in enumerate(self.frames):
             t0 = time.perf_counter()
             tf = self.step(n, frame)
@@ -395,6 +410,8 @@ class Tracker:
             rows.append(tf.row)
             positions.append(tf.positions_mm)
             propagated.append(self.propagated.copy())
+            for name, b in self.baselines.items():
+                baselines[name].append(b["positions"].copy())
             field_mm = None
             if field_needed:
                 field_mm = sitk.GetArrayFromImage(displacement_field(self.model, tf.positions_mm, self.case))
@@ -412,7 +429,9 @@ class Tracker:
             o.end(self, out_dir, rows)
         tmp = os.path.join(out_dir, "particles.part.npz")
         np.savez_compressed(tmp, planning_mm=self.model.positions_mm, organ_index=self.model.organ_index,
-                            organs=np.asarray(self.model.organs), estimate_mm=np.asarray(positions), propagate_mm=np.asarray(propagated))
+                            organs=np.asarray(self.model.organs), estimate_mm=np.asarray(positions), propagate_mm=np.asarray(propagated),
+                            measured_organs=np.asarray(sorted(self.measured_organs), dtype=str),
+                            **{f"{name}_mm": np.asarray(v) for name, v in baselines.items()})
         os.replace(tmp, os.path.join(out_dir, "particles.npz"))
         return rows
 

@@ -189,11 +189,15 @@ def cmd_evaluate_track(a) -> int:
     ev = evaluate_track(a.track, a.truth)
     print("| method | error mm | p95 mm | Dice | centroid error mm |\n|---|---|---|---|---|")
     for name, r in ev["results"].items():
-        print(f"| {name} | {r['error_mm']:.2f} | {r['p95_mm']:.2f} | {r['dice']:.3f} | {r['centroid_error_mm']:.2f} |")
-    print("\nevery organ, mean error mm over the frames (p95):\n| method | " + " | ".join(ev["results"]["estimate"]["organs"]) + " |\n|---|"
-          + "---|" * len(ev["results"]["estimate"]["organs"]))
+        if "error_mm" in r:  # nearest / global are scored on the organs no frame measured only
+            print(f"| {name} | {r['error_mm']:.2f} | {r['p95_mm']:.2f} | {r['dice']:.3f} | {r['centroid_error_mm']:.2f} |")
+    organs = list(ev["results"]["estimate"]["organs"])
+    unseen = [o for o, s in ev["results"]["estimate"]["organs"].items() if not s.get("seen", True)]
+    print("\nevery organ, mean error mm over the frames (p95); nearest / global: the baselines of an organ no frame measured:\n"
+          "| method | " + " | ".join(o + (" (on no plane)" if o in unseen else "") for o in organs) + " |\n|---|" + "---|" * len(organs))
     for name, r in ev["results"].items():
-        print(f"| {name} | " + " | ".join(f"{s['error_mm']:.2f} ({s['p95_mm']:.2f})" for s in r["organs"].values()) + " |")
+        print(f"| {name} | " + " | ".join(f"{r['organs'][o]['error_mm']:.2f} ({r['organs'][o]['p95_mm']:.2f})" if o in r["organs"]
+                                          else "" for o in organs) + " |")
     print(f"latency: median {ev['latency_s']['median']:.2f} s, p95 {ev['latency_s']['p95']:.2f} s")
     if a.json:
         write_json_atomic(a.json, ev)

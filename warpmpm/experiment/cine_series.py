@@ -304,8 +304,9 @@ def _truth_from_fields(truth_dir: str, planning_mm: np.ndarray, planning: "Geome
 
 def evaluate_track(track_dir: str, truth_dir: str) -> dict:
     """Per frame and overall: pancreas error (mean, p95, mm), Dice and centroid error of the estimate and of
-    ``propagate`` and ``initial``; every organ's mean error, p95 and superior-inferior error (``organs``); latency
-    median and p95 (s). ``truth_dir``: a ``make-cine`` truth (``positions.npz``) or displacement fields (a
+    ``propagate`` and ``initial``; every organ's mean error, p95 and superior-inferior error (``organs``; ``seen``: whether
+    some frame's registration measured it), and for the organs no frame measured the copy with the ``nearest`` and
+    ``global`` rules (the baselines with the same information); latency median and p95 (s). ``truth_dir``: a ``make-cine`` truth (``positions.npz``) or displacement fields (a
     ``make-truth`` folder, or a folder of ``frame_NNNN.nii.gz`` on the planning grid)."""
     from .io import read_csv
 
@@ -317,7 +318,8 @@ def evaluate_track(track_dir: str, truth_dir: str) -> dict:
         raise InputError(f"{os.path.join(track_dir, 'particles.npz')} not found; {fix}")
     try:
         tr = np.load(os.path.join(track_dir, "particles.npz"))
-        tr = {k: tr[k] for k in ("planning_mm", "estimate_mm", "propagate_mm", "organ_index", "organs")}
+        tr = {k: tr[k] for k in ("planning_mm", "estimate_mm", "propagate_mm", "organ_index", "organs", "nearest_mm", "global_mm",
+                                 "measured_organs") if k in tr.files or k not in ("nearest_mm", "global_mm", "measured_organs")}
     except Exception as exc:  # noqa: BLE001 - numpy's many ways to fail on a broken archive
         raise InputError(f"{os.path.join(track_dir, 'particles.npz')} cannot be read ({type(exc).__name__}: {exc}); {fix}") from None
     if os.path.exists(os.path.join(truth_dir, "positions.npz")):
@@ -353,14 +355,23 @@ def evaluate_track(track_dir: str, truth_dir: str) -> dict:
     results = {name: {key: float(np.mean([f[name][key] for f in frames])) for key in ("error_mm", "p95_mm", "dice", "centroid_error_mm")}
                for name in methods}
     organs = list(tr["organs"])
+    measured = set(str(o) for o in tr["measured_organs"]) if "measured_organs" in tr else None
+    unseen = [o for o in organs if measured is not None and str(o) not in measured]
+    for name in ("nearest", "global"):  # the baselines of the organs no frame measured (the copy with those rules)
+        if f"{name}_mm" in tr and unseen:
+            methods[name] = tr[f"{name}_mm"]
     for name, arr in methods.items():  # every organ, averaged over the frames
-        results[name]["organs"] = {}
+        results.setdefault(name, {})["organs"] = {}
         for i, o in enumerate(organs):
+            if name in ("nearest", "global") and o not in unseen:
+                continue
             sel = tr["organ_index"] == i
             err = np.stack([arr[k][sel] - gt["truth_mm"][k][sel] for k in range(n)])  # (frames, n, 3)
             d = np.linalg.norm(err, axis=2)
             results[name]["organs"][str(o)] = {"error_mm": float(d.mean()), "p95_mm": float(np.mean(np.percentile(d, 95, axis=1))),
                                                "si_mm": float(np.abs(err[..., 2]).mean())}
+            if measured is not None:
+                results[name]["organs"][str(o)]["seen"] = str(o) in measured
     lat = np.array([f["latency_s"] for f in frames[1:]] or [frames[0]["latency_s"]])
     return {"results": results, "latency_s": {"median": float(np.median(lat)), "p95": float(np.percentile(lat, 95))}, "frames": frames}
 
