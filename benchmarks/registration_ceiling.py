@@ -12,7 +12,7 @@ largest pancreas motion, planes where each shows the most pancreas; ``warpmpm ru
 - ``gt-inplane``: the planes' true in-plane motion (the ceiling of any 2D registration);
 - ``cine``: the planes imaged as 6 mm cine frames and followed by the tracker's own pipeline (``warpmpm track``'s
   registration: Gauss-Newton, organ by organ, against the estimate rendered on the plane), with the tracker's linear
-  prior (10) and without it (0);
+  prior (10) and without it (0, ``run``'s default: a run's frame is one jump from planning);
 - ``registration-demons``: the experiment's older path (ITK, organ-aware affines refined by demons, the plane check).
 
 Printed: per organ the copy's mean error (mm) for each, and the ratio registered / true for the seen organs (issue
@@ -32,11 +32,21 @@ from warpmpm.experiment import raw_numbers as raw
 from warpmpm.experiment.fem_cases import PLANES, load, peak_frame, slices_through_pancreas
 
 ORGANS = ("pancreas", "stomach", "duodenum", "left_kidney")
-KINDS = (("gt-inplane", {}), ("cine", {}), ("cine", {"cine_linear_prior": 0.0}), ("registration-demons", {}))
+KINDS = (("gt-inplane", {}), ("cine", {"cine_linear_prior": 10.0}), ("cine", {"cine_linear_prior": 0.0}),
+         ("registration-demons", {}))
 
 
 def kind_name(kind: str, extra: dict) -> str:
     return kind + (f" (prior {extra['cine_linear_prior']:g})" if "cine_linear_prior" in extra else "")
+
+
+def _upgrade(rows: list[dict]) -> list[dict]:
+    """Rows saved while ``cine`` ran with the tracker's prior (10) by default name it ``cine``: read as ``cine (prior 10)``."""
+    for r in rows:
+        for key in ("errors", "runs"):
+            if "cine" in r.get(key, {}):
+                r[key]["cine (prior 10)"] = r[key].pop("cine")
+    return rows
 
 
 def table(rows: list[dict]) -> str:
@@ -85,7 +95,7 @@ def main(argv=None):
     p.add_argument("--resume", action="store_true", help="keep the rows of run --raw already saved and add the missing ones")
     a = p.parse_args(argv)
     if a.report:
-        rows = raw.load(raw.results_path(__file__), a.raw)
+        rows = _upgrade(raw.load(raw.results_path(__file__), a.raw))
         print(table(rows) + "\n\n" + organ_check(rows))
         return
     from warpmpm.experiment.config import CaseConfig
@@ -100,7 +110,7 @@ def main(argv=None):
     rows = []
     if a.resume:
         try:
-            rows = raw.load(raw.results_path(__file__), a.raw)
+            rows = _upgrade(raw.load(raw.results_path(__file__), a.raw))
         except (OSError, KeyError, SystemExit):
             rows = []
     done = {(r["case"], r["seed"], r["planes"]) for r in rows}

@@ -40,7 +40,8 @@ def test_run_and_track_give_the_same_per_organ_figures_on_the_same_frames(cine_r
     """The frames ``run --targets cine`` tracked, written as NIfTI files beside its planning case and given to
     ``warpmpm track``: the same particles, the same final estimate to 1e-3 mm, the same per-organ errors against the
     truth to 1e-3 mm (the NIfTI files keep the grid's geometry in float32: 1e-5 mm) (the copy is ``run``'s default estimate). Breaks when either path registers, renders or copies otherwise
-    (e.g. ``run`` with the ITK backend of its own ``--registration`` differs by millimetres)."""
+    (e.g. ``run`` with the ITK backend of its own ``--registration`` differs by millimetres). The tracker's linear prior
+    is the run's (``cine_linear_prior``, 0: a run's frame is one jump from planning)."""
     cfg, prep, gt, out = cine_run
     model = prep.model(cfg.organs)
     slices = prep.resolve_slices(model, cfg.slices)
@@ -51,7 +52,8 @@ def test_run_and_track_give_the_same_per_organ_figures_on_the_same_frames(cine_r
     for k, f in enumerate(frames):
         sitk.WriteImage(f.image, str(tmp_path / "cine" / f"frame_{k:04d}.nii.gz"))
     assert main(["track", "--image", image, "--labels", labels, "--cine", str(tmp_path / "cine"), "--out",
-                 str(tmp_path / "track"), "--particle-step", str(cfg.particle_step)]) == 0
+                 str(tmp_path / "track"), "--particle-step", str(cfg.particle_step),
+                 "--linear-prior", str(cfg.cine_linear_prior)]) == 0  # a run's one jump from planning: no prior
     p = np.load(tmp_path / "track" / "particles.npz")
     assert np.allclose(p["planning_mm"], model.positions_mm, atol=1e-4)  # the same model (NIfTI keeps float32 geometry)
     assert out.estimator == "copy" and out.results["estimate"] is out.results["copy"]

@@ -123,8 +123,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     d.add_argument("--cine-thickness-mm", type=float, default=_experiment_default("cine_thickness_mm"),
                    help="--targets cine: the captured planes' slice thickness, mm (default %(default)s)")
     d.add_argument("--cine-linear-prior", type=float, default=_experiment_default("cine_linear_prior"),
-                   help="--targets cine: the tracker's --linear-prior (default %(default)s, the tracker's; 0 for a truth that "
-                   "scales or shears its planes, as the seed's paper protocol does)")
+                   help="--targets cine: the tracker's --linear-prior (default %(default)s: a run's frame is one jump from "
+                   "planning, where the tracker's 10 fails; docs/results.md)")
     d.add_argument("--registration", default=_experiment_default("registration"), choices=list(BACKENDS),
                    help="the slice registration's optimiser (registration targets): ITK's gradient descent or Gauss-Newton, "
                    "the same correlation metric")

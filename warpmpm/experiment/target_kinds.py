@@ -16,7 +16,7 @@
   order) and followed by the tracker's own frame pipeline (:class:`warpmpm.tracker.Tracker` with its default
   configuration but the linear prior, :attr:`~warpmpm.experiment.config.CaseConfig.cine_linear_prior`: each frame
   registered organ by organ against the estimate rendered on its plane, the frame check, the ``copy`` estimator):
-  what ``warpmpm track`` gives for those frames (``--linear-prior`` the same), to the digit (tested).
+  what ``warpmpm track --linear-prior 0`` gives for those frames, to the digit (tested).
 
 With ``drive="inplane"`` a slice drives only its in-plane components (the through-plane motion is left
 to the physics or to an orthogonal slice); ``"pinned"`` also holds the through-plane coordinate where
